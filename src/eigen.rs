@@ -1,0 +1,1 @@
+//! Eigensolver (stub, in progress).

@@ -1,0 +1,127 @@
+//! The one error type of the library, with a stable machine-readable code for each kind.
+//!
+//! Codes (`mesh.parse`, `limit.vertices`, ...) are part of the public contract: the CLI prints
+//! them and the server maps them to `application/problem+json` documents. Never rename one.
+
+use std::fmt;
+
+/// Where in an input file a problem was found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Location {
+    /// 1-based line number of a text format.
+    Line(usize),
+    /// 0-based byte offset of a binary format.
+    Byte(usize),
+}
+
+impl fmt::Display for Location {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Location::Line(l) => write!(f, "line {l}"),
+            Location::Byte(b) => write!(f, "byte {b}"),
+        }
+    }
+}
+
+/// Which configurable limit an input exceeded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LimitKind {
+    /// Input size in bytes.
+    Bytes,
+    /// Number of vertices.
+    Vertices,
+    /// Number of faces (triangles after triangulation).
+    Faces,
+}
+
+impl fmt::Display for LimitKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            LimitKind::Bytes => "bytes",
+            LimitKind::Vertices => "vertices",
+            LimitKind::Faces => "faces",
+        })
+    }
+}
+
+/// Every failure the library reports. Never a panic on user input.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The bytes are not a valid file of the named format.
+    #[error("{format}: {message}{}", location.map(|l| format!(" (at {l})")).unwrap_or_default())]
+    Parse {
+        /// Format name (`OBJ`, `PLY`, `glTF`, `OFF`, `STL`).
+        format: &'static str,
+        /// Where the problem is, when known.
+        location: Option<Location>,
+        /// What is wrong.
+        message: String,
+    },
+    /// The format could not be recognised from the bytes, the extension or the hint.
+    #[error("unknown mesh format: {0}")]
+    UnknownFormat(String),
+    /// A glTF file refers to an external buffer or image (file path or URL): refused.
+    #[error("glTF: external reference refused: {0}")]
+    ExternalReference(String),
+    /// The input exceeds a configured limit.
+    #[error("too many {kind}: {actual} > limit {limit}")]
+    Limit {
+        /// Which limit.
+        kind: LimitKind,
+        /// The configured maximum.
+        limit: usize,
+        /// What the input has (or a lower bound of it).
+        actual: usize,
+    },
+    /// Nothing usable is left (no triangles, or every triangle degenerate).
+    #[error("empty mesh: {0}")]
+    EmptyMesh(String),
+    /// A vertex coordinate is NaN or infinite.
+    #[error("non-finite coordinate at vertex {vertex}")]
+    NonFinite {
+        /// 0-based index of the first offending vertex in the file.
+        vertex: usize,
+    },
+    /// The numerical core failed (factorisation, convergence, residual check).
+    #[error("numerical failure: {0}")]
+    Numerical(String),
+    /// An argument or specification is invalid.
+    #[error("invalid argument: {0}")]
+    InvalidArgument(String),
+    /// An I/O error while reading or writing a file.
+    #[error("I/O: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+impl Error {
+    /// The stable machine-readable code of this error.
+    pub fn code(&self) -> &'static str {
+        match self {
+            Error::Parse { .. } => "mesh.parse",
+            Error::UnknownFormat(_) => "mesh.format",
+            Error::ExternalReference(_) => "mesh.external_reference",
+            Error::Limit { kind, .. } => match kind {
+                LimitKind::Bytes => "limit.bytes",
+                LimitKind::Vertices => "limit.vertices",
+                LimitKind::Faces => "limit.faces",
+            },
+            Error::EmptyMesh(_) => "mesh.empty",
+            Error::NonFinite { .. } => "mesh.non_finite",
+            Error::Numerical(_) => "spectrum.numerical",
+            Error::InvalidArgument(_) => "request.invalid",
+            Error::Io(_) => "io",
+        }
+    }
+
+    /// Shorthand for a parse error.
+    pub fn parse(format: &'static str, location: Option<Location>, message: impl Into<String>) -> Self {
+        Error::Parse {
+            format,
+            location,
+            message: message.into(),
+        }
+    }
+}
+
+/// Result alias of the library.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -1,0 +1,1 @@
+//! Cotangent Laplacian (stub, in progress).

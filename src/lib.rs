@@ -1,0 +1,14 @@
+//! shapeseek: non-rigid 3D shape retrieval with spectral shape distances
+//! (M. M. Bronstein, A. M. Bronstein, "Shape recognition with spectral distances", TPAMI 2011).
+//!
+//! The data flow is one-way: bytes → [`mesh`] (read, prepare) → [`laplace`] (cotangent stiffness,
+//! lumped mass) → [`eigen`] (k smallest generalized eigenpairs) → [`spectrum::Spectrum`]. The core
+//! is pure synchronous Rust: no HTTP, no storage.
+
+pub mod eigen;
+pub mod error;
+pub mod laplace;
+pub mod mesh;
+pub mod spectrum;
+
+pub use error::{Error, Result};

@@ -1,0 +1,81 @@
+//! Triangle meshes: the in-memory type, format readers/writers, generators and preparation.
+//!
+//! Everything here is pure and synchronous: bytes in, [`Mesh`] out. Nothing knows of HTTP or
+//! storage.
+
+pub mod generate;
+
+use serde::{Deserialize, Serialize};
+
+/// A triangle mesh: vertex positions and triangles as indices into `vertices`.
+///
+/// Readers produce it as found in the file (polygons triangulated, objects merged, node transforms
+/// applied); [`prepare`](crate::mesh) cleans it. Indices are `u32`: limits keep meshes far below.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct Mesh {
+    /// Vertex positions.
+    pub vertices: Vec<[f64; 3]>,
+    /// Triangles, counter-clockwise when seen from outside where the source was consistent.
+    pub faces: Vec<[u32; 3]>,
+}
+
+impl Mesh {
+    /// Builds a mesh from positions and triangles (no validation; see the preparation step).
+    pub fn new(vertices: Vec<[f64; 3]>, faces: Vec<[u32; 3]>) -> Self {
+        Self { vertices, faces }
+    }
+
+    /// Total surface area (sum of triangle areas).
+    pub fn area(&self) -> f64 {
+        self.faces.iter().map(|f| triangle_area(self, f)).sum()
+    }
+
+    /// Applies `p -> R p + t` (R given row-major) to every vertex.
+    pub fn transform(&mut self, r: [[f64; 3]; 3], t: [f64; 3]) {
+        for v in &mut self.vertices {
+            let p = *v;
+            for (i, row) in r.iter().enumerate() {
+                v[i] = row[0] * p[0] + row[1] * p[1] + row[2] * p[2] + t[i];
+            }
+        }
+    }
+
+    /// Multiplies every coordinate by `s`.
+    pub fn scale(&mut self, s: f64) {
+        for v in &mut self.vertices {
+            for c in v.iter_mut() {
+                *c *= s;
+            }
+        }
+    }
+}
+
+/// Area of one triangle of `mesh`.
+pub fn triangle_area(mesh: &Mesh, f: &[u32; 3]) -> f64 {
+    let [a, b, c] = f.map(|i| mesh.vertices[i as usize]);
+    0.5 * norm(cross(sub(b, a), sub(c, a)))
+}
+
+#[inline]
+pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+#[inline]
+pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+#[inline]
+pub(crate) fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
