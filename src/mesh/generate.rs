@@ -148,6 +148,21 @@ pub fn bumpy_sphere(subdivisions: u32, amplitude: f64) -> Mesh {
     mesh
 }
 
+/// A torus of `nu × nv` vertices whose tube radius varies smoothly and asymmetrically
+/// (a benchmark shape of any size with no symmetry, so no repeated eigenvalues).
+pub fn bumpy_torus(nu: usize, nv: usize) -> Mesh {
+    let mut mesh = torus(1.0, 0.35, nu, nv);
+    for (idx, v) in mesh.vertices.iter_mut().enumerate() {
+        let (i, j) = (idx / nv, idx % nv);
+        let u = 2.0 * std::f64::consts::PI * i as f64 / nu as f64;
+        let w = 2.0 * std::f64::consts::PI * j as f64 / nv as f64;
+        let minor = 0.35 * (1.0 + 0.3 * (3.0 * u).sin() + 0.15 * (2.0 * u + 0.7).cos() * w.sin());
+        let r = 1.0 + 0.1 * (u + 0.3).cos() + minor * w.cos();
+        *v = [r * u.cos(), 1.2 * r * u.sin(), minor * w.sin()];
+    }
+    mesh
+}
+
 fn normalize(v: [f64; 3]) -> [f64; 3] {
     let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
     [v[0] / n, v[1] / n, v[2] / n]
