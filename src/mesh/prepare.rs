@@ -29,7 +29,6 @@
 use super::{cross, norm, sub, Mesh};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
 
 /// Which connected components [`prepare`] keeps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -147,7 +146,11 @@ pub fn prepare_with_map(
     if n > u32::MAX as usize {
         return Err(Error::InvalidArgument(format!("too many vertices: {n}")));
     }
-    if let Some(i) = mesh.vertices.iter().position(|v| !v.iter().all(|c| c.is_finite())) {
+    if let Some(i) = mesh
+        .vertices
+        .iter()
+        .position(|v| !v.iter().all(|c| c.is_finite()))
+    {
         return Err(Error::NonFinite { vertex: i });
     }
     for (fi, f) in mesh.faces.iter().enumerate() {
@@ -166,7 +169,11 @@ pub fn prepare_with_map(
         Some(eps) if eps > 0.0 => weld_tolerance(&mesh.vertices, eps),
         _ => weld_exact(&mesh.vertices),
     };
-    let clusters = cluster.iter().enumerate().filter(|&(i, &c)| c as usize == i).count();
+    let clusters = cluster
+        .iter()
+        .enumerate()
+        .filter(|&(i, &c)| c as usize == i)
+        .count();
     let welded_vertices = n - clusters;
     let pos = |c: u32| mesh.vertices[source[c as usize] as usize];
 
@@ -233,16 +240,16 @@ pub fn prepare_with_map(
         uf.union(f[0], f[1]);
         uf.union(f[0], f[2]);
     }
-    let mut comp_of_root: HashMap<u32, usize> = HashMap::new();
+    let mut comp_of_root: Vec<usize> = vec![usize::MAX; n];
     let mut comp_area: Vec<f64> = Vec::new();
     let mut face_comp: Vec<usize> = Vec::with_capacity(faces.len());
     for (f, &a) in faces.iter().zip(&areas) {
-        let r = uf.find(f[0]);
-        let next = comp_area.len();
-        let c = *comp_of_root.entry(r).or_insert(next);
-        if c == next {
+        let r = uf.find(f[0]) as usize;
+        if comp_of_root[r] == usize::MAX {
+            comp_of_root[r] = comp_area.len();
             comp_area.push(0.0);
         }
+        let c = comp_of_root[r];
         comp_area[c] += a;
         face_comp.push(c);
     }
@@ -436,51 +443,67 @@ fn weld_tolerance(vertices: &[[f64; 3]], eps: f64) -> (Vec<u32>, Vec<u32>) {
         return weld_exact(vertices);
     }
     // Cell coordinates; `as i64` saturates, which only makes cells coarser (still correct).
-    let cell = |v: &[f64; 3]| -> [i64; 3] {
-        [0, 1, 2].map(|k| ((v[k] - lo[k]) / h).floor() as i64)
-    };
+    let cell =
+        |v: &[f64; 3]| -> [i64; 3] { [0, 1, 2].map(|k| ((v[k] - lo[k]) / h).floor() as i64) };
     let mut order: Vec<([i64; 3], u32)> = vertices
         .iter()
         .enumerate()
         .map(|(i, v)| (cell(v), i as u32))
         .collect();
     order.sort_unstable();
-    let mut ranges: HashMap<[i64; 3], (usize, usize)> = HashMap::new();
+    let mut cells: Vec<([i64; 3], usize, usize)> = Vec::new();
     let mut start = 0;
     while start < order.len() {
         let mut end = start + 1;
         while end < order.len() && order[end].0 == order[start].0 {
             end += 1;
         }
-        ranges.insert(order[start].0, (start, end));
+        cells.push((order[start].0, start, end));
         start = end;
     }
     let h2 = h * h;
     let mut uf = UnionFind::new(n);
-    for &(c, i) in &order {
-        let p = vertices[i as usize];
-        for dx in -1..=1i64 {
-            for dy in -1..=1i64 {
-                for dz in -1..=1i64 {
-                    let nc = [
-                        c[0].saturating_add(dx),
-                        c[1].saturating_add(dy),
-                        c[2].saturating_add(dz),
-                    ];
-                    let Some(&(s, e)) = ranges.get(&nc) else {
-                        continue;
-                    };
-                    for &(_, j) in &order[s..e] {
-                        if j <= i {
-                            continue;
-                        }
-                        let d = sub(vertices[j as usize], p);
-                        if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= h2 && uf.find(i) != uf.find(j)
-                        {
-                            uf.union(i, j);
-                        }
+    let try_pair = |i: u32, j: u32, uf: &mut UnionFind| {
+        let d = sub(vertices[j as usize], vertices[i as usize]);
+        if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= h2 {
+            uf.union(i, j);
+        }
+    };
+    // Each pair of neighbouring cells once: the cell itself, then the 13 neighbours after it in
+    // lexicographic order, as five runs (dx, dy, dz_lo..=dz_hi) that are contiguous in the sorted
+    // cell list. The start of each run only moves forward as the cells are visited in order, so
+    // one cursor per run finds it without hashing or searching. (`saturating_add` keeps the keys
+    // monotone; a saturated run may revisit a pair, which is harmless.)
+    const RUNS: [(i64, i64, i64, i64); 5] = [
+        (0, 0, 1, 1),
+        (0, 1, -1, 1),
+        (1, -1, -1, 1),
+        (1, 0, -1, 1),
+        (1, 1, -1, 1),
+    ];
+    let mut cursor = [0usize; 5];
+    for &(c, s, e) in &cells {
+        for a in s..e {
+            for b in a + 1..e {
+                try_pair(order[a].1, order[b].1, &mut uf);
+            }
+        }
+        for (r, &(dx, dy, z0, z1)) in RUNS.iter().enumerate() {
+            let (x, y) = (c[0].saturating_add(dx), c[1].saturating_add(dy));
+            let first = [x, y, c[2].saturating_add(z0)];
+            let last = [x, y, c[2].saturating_add(z1)];
+            while cursor[r] < cells.len() && cells[cursor[r]].0 < first {
+                cursor[r] += 1;
+            }
+            let mut q = cursor[r];
+            while q < cells.len() && cells[q].0 <= last {
+                let (_, s2, e2) = cells[q];
+                for a in s..e {
+                    for b in s2..e2 {
+                        try_pair(order[a].1, order[b].1, &mut uf);
                     }
                 }
+                q += 1;
             }
         }
     }
@@ -759,13 +782,70 @@ mod tests {
     #[test]
     fn prepare_weld_tolerance_is_transitive_and_order_free() {
         // A chain 0 - 1 - 2 with steps below the tolerance, 3 far away.
-        let v = vec![[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.3, 0.0, 0.0]];
+        let v = vec![
+            [0.0, 0.0, 0.0],
+            [10.0, 0.0, 0.0],
+            [0.6, 0.0, 0.0],
+            [0.3, 0.0, 0.0],
+        ];
         // bbox diagonal 10: eps 0.04 → 0.4 absolute.
         let (c, s) = weld_tolerance(&v, 0.04);
         assert_eq!(c, vec![0, 1, 0, 0]);
         assert_eq!(s[0], 0); // lexicographically smallest member
         let (c, _) = weld_tolerance(&v, 0.02); // 0.2 absolute: nothing merges
         assert_eq!(c, vec![0, 1, 2, 3]);
+    }
+
+    #[test]
+    fn prepare_weld_tolerance_matches_brute_force() {
+        // Jittered points: many pairs near the tolerance, in every direction across cells.
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for (npts, eps) in [(400, 0.02), (400, 0.05), (300, 0.1), (50, 0.0001)] {
+            let v: Vec<[f64; 3]> = (0..npts)
+                .map(|_| [rnd(), rnd() * 0.5, rnd() * 2.0])
+                .collect();
+            let (c, s) = weld_tolerance(&v, eps);
+            let d = {
+                let (lo, hi) = v.iter().fold(
+                    ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
+                    |(lo, hi), p| {
+                        (
+                            [0, 1, 2].map(|k| lo[k].min(p[k])),
+                            [0, 1, 2].map(|k| hi[k].max(p[k])),
+                        )
+                    },
+                );
+                eps * norm(sub(hi, lo))
+            };
+            let mut uf = UnionFind::new(npts);
+            for i in 0..npts {
+                for j in i + 1..npts {
+                    if norm(sub(v[i], v[j])) <= d {
+                        uf.union(i as u32, j as u32);
+                    }
+                }
+            }
+            let expected: Vec<u32> = (0..npts as u32).map(|i| uf.find(i)).collect();
+            assert_eq!(c, expected, "eps {eps}");
+            let merged = c
+                .iter()
+                .enumerate()
+                .filter(|&(i, &r)| r as usize != i)
+                .count();
+            assert!(
+                eps < 0.001 || merged > 20,
+                "eps {eps}: only {merged} merged"
+            );
+            for (i, &r) in c.iter().enumerate() {
+                assert!(!lex_less(v[i], v[s[r as usize] as usize]));
+            }
+        }
     }
 
     #[test]
