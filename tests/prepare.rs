@@ -579,6 +579,42 @@ fn edge_stats(m: &Mesh) -> (usize, usize, usize, usize) {
     (e.len(), boundary, nonmanifold, inconsistent)
 }
 
+/// When every boundary vertex has exactly two boundary edges, the number of boundary cycles
+/// (connected components of the boundary graph, by flood fill); `None` otherwise.
+fn simple_boundary_cycles(m: &Mesh) -> Option<usize> {
+    let mut count: BTreeMap<(u32, u32), usize> = BTreeMap::new();
+    for f in &m.faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            *count.entry((a.min(b), a.max(b))).or_default() += 1;
+        }
+    }
+    let mut adj: BTreeMap<u32, Vec<u32>> = BTreeMap::new();
+    for (&(a, b), _) in count.iter().filter(|(_, &c)| c == 1) {
+        adj.entry(a).or_default().push(b);
+        adj.entry(b).or_default().push(a);
+    }
+    if adj.values().any(|n| n.len() != 2) {
+        return None;
+    }
+    let mut seen = BTreeSet::new();
+    let mut cycles = 0;
+    for &v in adj.keys() {
+        if seen.insert(v) {
+            cycles += 1;
+            let mut stack = vec![v];
+            while let Some(u) = stack.pop() {
+                for &w in &adj[&u] {
+                    if seen.insert(w) {
+                        stack.push(w);
+                    }
+                }
+            }
+        }
+    }
+    Some(cycles)
+}
+
 fn soup() -> impl Strategy<Value = Mesh> {
     // Coordinates on a coarse grid: many exact duplicates and collinear (zero-area) triples.
     (3usize..24).prop_flat_map(|n| {
@@ -656,7 +692,14 @@ proptest! {
         let (e, b, nm, inc) = edge_stats(&out);
         prop_assert_eq!(r.euler_characteristic, nv as i64 - e as i64 + out.faces.len() as i64);
         prop_assert_eq!((r.boundary_edges, r.nonmanifold_edges, r.inconsistent_orientation_edges), (b, nm, inc));
-        prop_assert!(r.boundary_loops <= r.boundary_edges / 3 + usize::from(r.nonmanifold_edges > 0) * r.boundary_edges);
+        prop_assert!(r.boundary_loops <= r.boundary_edges);
+        if r.nonmanifold_edges == 0 {
+            // Only closed simple cycles (no open chains), each of at least three edges.
+            prop_assert!(3 * r.boundary_loops <= r.boundary_edges);
+        }
+        if let Some(cycles) = simple_boundary_cycles(&out) {
+            prop_assert_eq!(r.boundary_loops, cycles);
+        }
         prop_assert_eq!(r.boundary_edges == 0, r.boundary_loops == 0);
         prop_assert!(r.components_kept >= 1 && r.components_kept <= r.components);
         if all {

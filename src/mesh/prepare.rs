@@ -123,7 +123,7 @@ pub struct PrepareReport {
     pub scale_factor: f64,
 }
 
-/// Cleans `mesh` (see the [module documentation](self)) and reports what was done.
+/// Cleans `mesh` (see the [module documentation](crate::mesh::prepare)) and reports what was done.
 ///
 /// # Errors
 /// [`Error::NonFinite`], [`Error::InvalidArgument`] (bad index or option, or an area that
