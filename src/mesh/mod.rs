@@ -4,6 +4,7 @@
 //! storage.
 
 pub mod generate;
+pub mod prepare;
 
 use serde::{Deserialize, Serialize};
 

@@ -1,0 +1,879 @@
+//! Mesh preparation: cleaning a raw triangle soup before the Laplace–Beltrami spectrum is
+//! computed.
+//!
+//! [`prepare`] runs these steps, in this order:
+//!
+//! 1. **Validation.** A non-finite coordinate fails with [`Error::NonFinite`] (first offending
+//!    vertex); a face index out of range fails with [`Error::InvalidArgument`]; a mesh without
+//!    faces fails with [`Error::EmptyMesh`].
+//! 2. **Welding** (see [`PrepareOptions::weld_tolerance`]). Every input vertex is mapped to a
+//!    cluster; faces are re-indexed to cluster representatives.
+//! 3. **Degenerate faces** are dropped: a face with a repeated vertex index after welding, or
+//!    whose area is exactly 0 or `≤ degenerate_area_ratio × mean face area` (the mean over the
+//!    faces without a repeated index). Then **exact duplicate faces** (same vertex *set*, either
+//!    orientation) are dropped, keeping the first occurrence in face order. Both are counted.
+//! 4. **Connected components** over faces sharing a vertex (union–find), measured by area, are
+//!    kept according to [`ComponentPolicy`]; the dropped area fraction is reported.
+//! 5. **Compaction.** Vertices referenced by no kept face are dropped; the kept ones stay in the
+//!    relative order of their first input index.
+//! 6. **Topology report** (never an error): boundary edges and loops, non-manifold edges,
+//!    inconsistently oriented edges, Euler characteristic `V − E + F`.
+//! 7. **Area normalisation** (optional, default on): the area-weighted centroid of the surface is
+//!    moved to the origin and coordinates are multiplied by `1/sqrt(area)`, so the total area is 1.
+//!
+//! Everything is deterministic and independent of the order of the input vertices (up to the
+//! corresponding permutation of the output). Cost is `O(n log n)` at worst except for tolerance
+//! welding, which is expected `O(n)` but quadratic in the size of a cluster of vertices that all
+//! fall into neighbouring grid cells.
+
+use super::{cross, norm, sub, Mesh};
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+
+/// Which connected components [`prepare`] keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ComponentPolicy {
+    /// Keep only the component of largest surface area (the first one in face order on an exact
+    /// tie).
+    #[default]
+    Largest,
+    /// Keep every component.
+    All,
+}
+
+/// Options of [`prepare`]. Missing fields deserialize to their defaults.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PrepareOptions {
+    /// `None` (default): weld only *exactly* coincident vertices (bitwise-equal coordinates, with
+    /// `-0.0 == 0.0`), so no two distinct points are ever merged. `Some(eps)`: additionally merge
+    /// vertices whose distance is `≤ eps × d`, where `d` is the diagonal of the axis-aligned
+    /// bounding box of all input vertices (so `eps` is **relative**, scale-invariant). Merging is
+    /// transitive (clusters are the connected components of the "closer than" relation), found
+    /// with a spatial hash grid. A cluster takes the position of its lexicographically smallest
+    /// member. `eps` must be finite and `≥ 0`; `Some(0.0)` is the same as `None`.
+    pub weld_tolerance: Option<f64>,
+    /// Which connected components to keep (default [`ComponentPolicy::Largest`]).
+    pub components: ComponentPolicy,
+    /// Scale to unit total area about the area-weighted centroid, which is moved to the origin
+    /// (default `true`). When `false` coordinates are left untouched.
+    pub normalize_area: bool,
+    /// A face is degenerate when its area is exactly 0 or `≤ degenerate_area_ratio × mean face
+    /// area` (default `1e-14`). Must be finite and `≥ 0`.
+    pub degenerate_area_ratio: f64,
+}
+
+impl Default for PrepareOptions {
+    fn default() -> Self {
+        Self {
+            weld_tolerance: None,
+            components: ComponentPolicy::Largest,
+            normalize_area: true,
+            degenerate_area_ratio: 1e-14,
+        }
+    }
+}
+
+/// What [`prepare`] did and found. Counts satisfy
+/// `vertices_in = vertices_out + welded_vertices + unreferenced_vertices` and
+/// `faces_in = faces_out + degenerate_faces + duplicate_faces + component_faces_dropped`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PrepareReport {
+    /// Number of input vertices.
+    pub vertices_in: usize,
+    /// Number of input faces.
+    pub faces_in: usize,
+    /// Number of output vertices.
+    pub vertices_out: usize,
+    /// Number of output faces.
+    pub faces_out: usize,
+    /// Input vertices merged into another vertex (input vertices minus distinct clusters).
+    pub welded_vertices: usize,
+    /// Faces dropped for a repeated vertex index (after welding) or a (near-)zero area.
+    pub degenerate_faces: usize,
+    /// Non-degenerate faces dropped because an earlier face has the same vertex set.
+    pub duplicate_faces: usize,
+    /// Faces dropped with a component not kept by the [`ComponentPolicy`].
+    pub component_faces_dropped: usize,
+    /// Welded vertices used by no output face (isolated, only in dropped faces, or in a dropped
+    /// component).
+    pub unreferenced_vertices: usize,
+    /// Connected components (faces sharing a vertex) before the policy is applied.
+    pub components: usize,
+    /// Components kept.
+    pub components_kept: usize,
+    /// Area of the dropped components over the area of all components (0 when all are kept).
+    pub dropped_area_fraction: f64,
+    /// Edges with exactly one incident face.
+    pub boundary_edges: usize,
+    /// Boundary curves: closed boundary cycles, plus open boundary chains (these only occur
+    /// next to non-manifold edges or vertices, where the decomposition is a convention).
+    pub boundary_loops: usize,
+    /// Edges with more than two incident faces.
+    pub nonmanifold_edges: usize,
+    /// Edges with exactly two incident faces that traverse it in the same direction.
+    pub inconsistent_orientation_edges: usize,
+    /// `V − E + F` of the output.
+    pub euler_characteristic: i64,
+    /// Total area of the output before normalisation.
+    pub original_area: f64,
+    /// Factor applied to the (centred) coordinates: `1/sqrt(original_area)` when normalising,
+    /// else 1.
+    pub scale_factor: f64,
+}
+
+/// Cleans `mesh` (see the [module documentation](crate::mesh::prepare)) and reports what was done.
+///
+/// # Errors
+/// [`Error::NonFinite`], [`Error::InvalidArgument`] (bad index or option, or an area that
+/// overflows), [`Error::EmptyMesh`] (no faces, or nothing left after cleaning).
+pub fn prepare(mesh: &Mesh, opts: &PrepareOptions) -> Result<(Mesh, PrepareReport)> {
+    prepare_with_map(mesh, opts).map(|(m, r, _)| (m, r))
+}
+
+/// Like [`prepare`], also returning for each input vertex its index in the output mesh (`None`
+/// when the vertex, or the cluster it was welded into, was dropped).
+///
+/// # Errors
+/// As [`prepare`].
+pub fn prepare_with_map(
+    mesh: &Mesh,
+    opts: &PrepareOptions,
+) -> Result<(Mesh, PrepareReport, Vec<Option<u32>>)> {
+    validate_options(opts)?;
+    let n = mesh.vertices.len();
+    if n > u32::MAX as usize {
+        return Err(Error::InvalidArgument(format!("too many vertices: {n}")));
+    }
+    if let Some(i) = mesh
+        .vertices
+        .iter()
+        .position(|v| !v.iter().all(|c| c.is_finite()))
+    {
+        return Err(Error::NonFinite { vertex: i });
+    }
+    for (fi, f) in mesh.faces.iter().enumerate() {
+        if let Some(&i) = f.iter().find(|&&i| i as usize >= n) {
+            return Err(Error::InvalidArgument(format!(
+                "face {fi} refers to vertex {i}, but the mesh has {n} vertices"
+            )));
+        }
+    }
+    if mesh.faces.is_empty() {
+        return Err(Error::EmptyMesh("the input has no faces".into()));
+    }
+
+    // 2. Welding: cluster[i] = smallest input index of i's cluster; pos[c] = cluster position.
+    let (cluster, source) = match opts.weld_tolerance {
+        Some(eps) if eps > 0.0 => weld_tolerance(&mesh.vertices, eps),
+        _ => weld_exact(&mesh.vertices),
+    };
+    let clusters = cluster
+        .iter()
+        .enumerate()
+        .filter(|&(i, &c)| c as usize == i)
+        .count();
+    let welded_vertices = n - clusters;
+    let pos = |c: u32| mesh.vertices[source[c as usize] as usize];
+
+    // 3. Degenerate faces.
+    let mut faces: Vec<[u32; 3]> = Vec::with_capacity(mesh.faces.len());
+    let mut areas: Vec<f64> = Vec::with_capacity(mesh.faces.len());
+    for f in &mesh.faces {
+        let w = f.map(|i| cluster[i as usize]);
+        if w[0] == w[1] || w[1] == w[2] || w[0] == w[2] {
+            continue;
+        }
+        let (a, b, c) = (pos(w[0]), pos(w[1]), pos(w[2]));
+        let area = 0.5 * norm(cross(sub(b, a), sub(c, a)));
+        if !area.is_finite() {
+            return Err(Error::InvalidArgument(
+                "face area overflows: coordinates too large".into(),
+            ));
+        }
+        faces.push(w);
+        areas.push(area);
+    }
+    let mut degenerate_faces = mesh.faces.len() - faces.len();
+    if !faces.is_empty() {
+        let mean = areas.iter().sum::<f64>() / areas.len() as f64;
+        let threshold = opts.degenerate_area_ratio * mean;
+        let mut k = 0;
+        for j in 0..faces.len() {
+            if areas[j] > 0.0 && areas[j] > threshold {
+                faces[k] = faces[j];
+                areas[k] = areas[j];
+                k += 1;
+            }
+        }
+        degenerate_faces += faces.len() - k;
+        faces.truncate(k);
+        areas.truncate(k);
+    }
+    if faces.is_empty() {
+        return Err(Error::EmptyMesh(format!(
+            "all {} faces are degenerate (repeated vertex or zero area)",
+            mesh.faces.len()
+        )));
+    }
+
+    // Exact duplicate faces (same vertex set).
+    let dup = duplicate_faces(n, &faces);
+    let duplicate_faces = dup.iter().filter(|&&d| d).count();
+    if duplicate_faces > 0 {
+        let mut k = 0;
+        for j in 0..faces.len() {
+            if !dup[j] {
+                faces[k] = faces[j];
+                areas[k] = areas[j];
+                k += 1;
+            }
+        }
+        faces.truncate(k);
+        areas.truncate(k);
+    }
+
+    // 4. Connected components.
+    let mut uf = UnionFind::new(n);
+    for f in &faces {
+        uf.union(f[0], f[1]);
+        uf.union(f[0], f[2]);
+    }
+    let mut comp_of_root: Vec<usize> = vec![usize::MAX; n];
+    let mut comp_area: Vec<f64> = Vec::new();
+    let mut face_comp: Vec<usize> = Vec::with_capacity(faces.len());
+    for (f, &a) in faces.iter().zip(&areas) {
+        let r = uf.find(f[0]) as usize;
+        if comp_of_root[r] == usize::MAX {
+            comp_of_root[r] = comp_area.len();
+            comp_area.push(0.0);
+        }
+        let c = comp_of_root[r];
+        comp_area[c] += a;
+        face_comp.push(c);
+    }
+    let components = comp_area.len();
+    let total_area: f64 = comp_area.iter().sum();
+    let (components_kept, dropped_area_fraction) = match opts.components {
+        ComponentPolicy::All => (components, 0.0),
+        ComponentPolicy::Largest => {
+            let mut best = 0;
+            for (c, &a) in comp_area.iter().enumerate() {
+                if a > comp_area[best] {
+                    best = c;
+                }
+            }
+            let dropped: f64 = comp_area
+                .iter()
+                .enumerate()
+                .filter(|&(c, _)| c != best)
+                .map(|(_, a)| a)
+                .sum();
+            let mut k = 0;
+            for j in 0..faces.len() {
+                if face_comp[j] == best {
+                    faces[k] = faces[j];
+                    k += 1;
+                }
+            }
+            faces.truncate(k);
+            (1, dropped / total_area)
+        }
+    };
+    let component_faces_dropped =
+        mesh.faces.len() - degenerate_faces - duplicate_faces - faces.len();
+
+    // 5. Compaction, keeping the order of the smallest input index of each cluster.
+    let mut new_index = vec![u32::MAX; n];
+    for f in &faces {
+        for &v in f {
+            new_index[v as usize] = 0;
+        }
+    }
+    let mut vertices: Vec<[f64; 3]> = Vec::new();
+    for (c, slot) in new_index.iter_mut().enumerate() {
+        if *slot == 0 {
+            *slot = vertices.len() as u32;
+            vertices.push(pos(c as u32));
+        }
+    }
+    for f in &mut faces {
+        *f = f.map(|v| new_index[v as usize]);
+    }
+    let map: Vec<Option<u32>> = cluster
+        .iter()
+        .map(|&c| Some(new_index[c as usize]).filter(|&i| i != u32::MAX))
+        .collect();
+    let unreferenced_vertices = clusters - vertices.len();
+
+    // 6. Topology.
+    let topo = analyse_edges(vertices.len(), &faces);
+
+    // 7. Area normalisation.
+    let mut out = Mesh::new(vertices, faces);
+    let original_area = out.area();
+    let mut scale_factor = 1.0;
+    if opts.normalize_area {
+        let mut c = [0.0; 3];
+        for f in &out.faces {
+            let [a, b, d] = f.map(|i| out.vertices[i as usize]);
+            let w = 0.5 * norm(cross(sub(b, a), sub(d, a))) / 3.0;
+            for k in 0..3 {
+                c[k] += w * (a[k] + b[k] + d[k]);
+            }
+        }
+        let c = c.map(|x| x / original_area);
+        scale_factor = 1.0 / original_area.sqrt();
+        for v in &mut out.vertices {
+            *v = [
+                (v[0] - c[0]) * scale_factor,
+                (v[1] - c[1]) * scale_factor,
+                (v[2] - c[2]) * scale_factor,
+            ];
+        }
+    }
+
+    let report = PrepareReport {
+        vertices_in: n,
+        faces_in: mesh.faces.len(),
+        vertices_out: out.vertices.len(),
+        faces_out: out.faces.len(),
+        welded_vertices,
+        degenerate_faces,
+        duplicate_faces,
+        component_faces_dropped,
+        unreferenced_vertices,
+        components,
+        components_kept,
+        dropped_area_fraction,
+        boundary_edges: topo.boundary_edges,
+        boundary_loops: topo.boundary_loops,
+        nonmanifold_edges: topo.nonmanifold_edges,
+        inconsistent_orientation_edges: topo.inconsistent,
+        euler_characteristic: out.vertices.len() as i64 - topo.edges as i64
+            + out.faces.len() as i64,
+        original_area,
+        scale_factor,
+    };
+    Ok((out, report, map))
+}
+
+fn validate_options(opts: &PrepareOptions) -> Result<()> {
+    if let Some(eps) = opts.weld_tolerance {
+        if !(eps.is_finite() && eps >= 0.0) {
+            return Err(Error::InvalidArgument(format!(
+                "weld_tolerance must be finite and >= 0, got {eps}"
+            )));
+        }
+    }
+    let r = opts.degenerate_area_ratio;
+    if !(r.is_finite() && r >= 0.0) {
+        return Err(Error::InvalidArgument(format!(
+            "degenerate_area_ratio must be finite and >= 0, got {r}"
+        )));
+    }
+    Ok(())
+}
+
+/// Lexicographic total order of positions (used to pick a cluster's position independently of
+/// the vertex order).
+fn lex_less(a: [f64; 3], b: [f64; 3]) -> bool {
+    a[0].total_cmp(&b[0])
+        .then(a[1].total_cmp(&b[1]))
+        .then(a[2].total_cmp(&b[2]))
+        .is_lt()
+}
+
+/// Given `cluster[i]` (= smallest index of the cluster), picks the lexicographically smallest
+/// member of each cluster as the source of its position: `source[c]` for cluster ids `c`.
+fn cluster_sources(vertices: &[[f64; 3]], cluster: &[u32]) -> Vec<u32> {
+    let mut source: Vec<u32> = (0..cluster.len() as u32).collect();
+    for (i, &c) in cluster.iter().enumerate() {
+        let s = &mut source[c as usize];
+        if lex_less(vertices[i], vertices[*s as usize]) {
+            *s = i as u32;
+        }
+    }
+    source
+}
+
+/// Exact welding: clusters of bitwise-equal positions (`-0.0` treated as `0.0`), by sorting.
+fn weld_exact(vertices: &[[f64; 3]]) -> (Vec<u32>, Vec<u32>) {
+    let mut keys: Vec<([u64; 3], u32)> = vertices
+        .iter()
+        .enumerate()
+        .map(|(i, v)| (v.map(|c| (c + 0.0).to_bits()), i as u32))
+        .collect();
+    keys.sort_unstable();
+    let mut cluster = vec![0u32; vertices.len()];
+    let mut start = 0;
+    while start < keys.len() {
+        let mut end = start + 1;
+        while end < keys.len() && keys[end].0 == keys[start].0 {
+            end += 1;
+        }
+        let id = keys[start].1; // smallest index: ties are sorted by index
+        for k in &keys[start..end] {
+            cluster[k.1 as usize] = id;
+        }
+        start = end;
+    }
+    let source = cluster_sources(vertices, &cluster);
+    (cluster, source)
+}
+
+/// Tolerance welding with a spatial hash grid of cell size `eps × bbox diagonal`: vertices at
+/// distance `≤` that are united (transitively); exact duplicates are always united.
+fn weld_tolerance(vertices: &[[f64; 3]], eps: f64) -> (Vec<u32>, Vec<u32>) {
+    let n = vertices.len();
+    if n == 0 {
+        return (Vec::new(), Vec::new());
+    }
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for v in vertices {
+        for k in 0..3 {
+            lo[k] = lo[k].min(v[k]);
+            hi[k] = hi[k].max(v[k]);
+        }
+    }
+    let h = eps * norm(sub(hi, lo));
+    if !(h > 0.0 && h.is_finite()) {
+        return weld_exact(vertices);
+    }
+    // Cell coordinates; `as i64` saturates, which only makes cells coarser (still correct).
+    let cell =
+        |v: &[f64; 3]| -> [i64; 3] { [0, 1, 2].map(|k| ((v[k] - lo[k]) / h).floor() as i64) };
+    let mut order: Vec<([i64; 3], u32)> = vertices
+        .iter()
+        .enumerate()
+        .map(|(i, v)| (cell(v), i as u32))
+        .collect();
+    order.sort_unstable();
+    let mut cells: Vec<([i64; 3], usize, usize)> = Vec::new();
+    let mut start = 0;
+    while start < order.len() {
+        let mut end = start + 1;
+        while end < order.len() && order[end].0 == order[start].0 {
+            end += 1;
+        }
+        cells.push((order[start].0, start, end));
+        start = end;
+    }
+    let h2 = h * h;
+    let mut uf = UnionFind::new(n);
+    let try_pair = |i: u32, j: u32, uf: &mut UnionFind| {
+        let d = sub(vertices[j as usize], vertices[i as usize]);
+        if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= h2 {
+            uf.union(i, j);
+        }
+    };
+    // Each pair of neighbouring cells once: the cell itself, then the 13 neighbours after it in
+    // lexicographic order, as five runs (dx, dy, dz_lo..=dz_hi) that are contiguous in the sorted
+    // cell list. The start of each run only moves forward as the cells are visited in order, so
+    // one cursor per run finds it without hashing or searching. (`saturating_add` keeps the keys
+    // monotone; a saturated run may revisit a pair, which is harmless.)
+    const RUNS: [(i64, i64, i64, i64); 5] = [
+        (0, 0, 1, 1),
+        (0, 1, -1, 1),
+        (1, -1, -1, 1),
+        (1, 0, -1, 1),
+        (1, 1, -1, 1),
+    ];
+    let mut cursor = [0usize; 5];
+    for &(c, s, e) in &cells {
+        for a in s..e {
+            for b in a + 1..e {
+                try_pair(order[a].1, order[b].1, &mut uf);
+            }
+        }
+        for (r, &(dx, dy, z0, z1)) in RUNS.iter().enumerate() {
+            let (x, y) = (c[0].saturating_add(dx), c[1].saturating_add(dy));
+            let first = [x, y, c[2].saturating_add(z0)];
+            let last = [x, y, c[2].saturating_add(z1)];
+            while cursor[r] < cells.len() && cells[cursor[r]].0 < first {
+                cursor[r] += 1;
+            }
+            let mut q = cursor[r];
+            while q < cells.len() && cells[q].0 <= last {
+                let (_, s2, e2) = cells[q];
+                for a in s..e {
+                    for b in s2..e2 {
+                        try_pair(order[a].1, order[b].1, &mut uf);
+                    }
+                }
+                q += 1;
+            }
+        }
+    }
+    let cluster: Vec<u32> = (0..n as u32).map(|i| uf.find(i)).collect();
+    let source = cluster_sources(vertices, &cluster);
+    (cluster, source)
+}
+
+/// Marks faces whose vertex set equals that of an earlier face. Bucketed by smallest vertex
+/// (counting sort), then sorted within each (small) bucket.
+fn duplicate_faces(n: usize, faces: &[[u32; 3]]) -> Vec<bool> {
+    let sorted: Vec<[u32; 3]> = faces
+        .iter()
+        .map(|f| {
+            let mut s = *f;
+            s.sort_unstable();
+            s
+        })
+        .collect();
+    let mut start = vec![0usize; n + 1];
+    for s in &sorted {
+        start[s[0] as usize + 1] += 1;
+    }
+    for v in 0..n {
+        start[v + 1] += start[v];
+    }
+    let mut fill = start.clone();
+    let mut slots = vec![(0u32, 0u32, 0u32); faces.len()];
+    for (j, s) in sorted.iter().enumerate() {
+        let p = &mut fill[s[0] as usize];
+        slots[*p] = (s[1], s[2], j as u32);
+        *p += 1;
+    }
+    let mut dup = vec![false; faces.len()];
+    for v in 0..n {
+        let bucket = &mut slots[start[v]..start[v + 1]];
+        if bucket.len() < 2 {
+            continue;
+        }
+        bucket.sort_unstable();
+        for k in 1..bucket.len() {
+            if (bucket[k].0, bucket[k].1) == (bucket[k - 1].0, bucket[k - 1].1) {
+                dup[bucket[k].2 as usize] = true;
+            }
+        }
+    }
+    dup
+}
+
+struct Topology {
+    edges: usize,
+    boundary_edges: usize,
+    boundary_loops: usize,
+    nonmanifold_edges: usize,
+    inconsistent: usize,
+}
+
+/// Edge statistics of a mesh without degenerate faces: half-edges bucketed by their smaller
+/// vertex (counting sort) and sorted within each bucket.
+fn analyse_edges(n: usize, faces: &[[u32; 3]]) -> Topology {
+    let mut start = vec![0usize; n + 1];
+    for f in faces {
+        for k in 0..3 {
+            start[f[k].min(f[(k + 1) % 3]) as usize + 1] += 1;
+        }
+    }
+    for v in 0..n {
+        start[v + 1] += start[v];
+    }
+    let mut fill = start.clone();
+    // (other vertex, forward = half-edge goes from the smaller to the larger vertex)
+    let mut slots = vec![(0u32, false); 3 * faces.len()];
+    for f in faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            let p = &mut fill[a.min(b) as usize];
+            slots[*p] = (a.max(b), a < b);
+            *p += 1;
+        }
+    }
+    let mut topo = Topology {
+        edges: 0,
+        boundary_edges: 0,
+        boundary_loops: 0,
+        nonmanifold_edges: 0,
+        inconsistent: 0,
+    };
+    let mut boundary: Vec<(u32, u32)> = Vec::new();
+    for v in 0..n {
+        let bucket = &mut slots[start[v]..start[v + 1]];
+        bucket.sort_unstable();
+        let mut s = 0;
+        while s < bucket.len() {
+            let mut e = s + 1;
+            while e < bucket.len() && bucket[e].0 == bucket[s].0 {
+                e += 1;
+            }
+            topo.edges += 1;
+            match e - s {
+                1 => boundary.push((v as u32, bucket[s].0)),
+                2 => {
+                    if bucket[s].1 == bucket[s + 1].1 {
+                        topo.inconsistent += 1;
+                    }
+                }
+                _ => topo.nonmanifold_edges += 1,
+            }
+            s = e;
+        }
+    }
+    topo.boundary_edges = boundary.len();
+    topo.boundary_loops = count_boundary_loops(n, &boundary);
+    topo
+}
+
+/// Decomposes the boundary-edge graph into edge-disjoint simple cycles and open chains, and
+/// counts them. On a manifold boundary (every boundary vertex has two boundary edges) this is
+/// exactly the number of boundary cycles. At a vertex with more boundary edges (pinch), every
+/// return to a vertex already on the current walk closes a cycle; walks start at odd-degree
+/// vertices first, so that open chains are not split needlessly.
+fn count_boundary_loops(n: usize, edges: &[(u32, u32)]) -> usize {
+    if edges.is_empty() {
+        return 0;
+    }
+    let mut start = vec![0usize; n + 1];
+    for &(a, b) in edges {
+        start[a as usize + 1] += 1;
+        start[b as usize + 1] += 1;
+    }
+    for v in 0..n {
+        start[v + 1] += start[v];
+    }
+    let mut fill = start.clone();
+    let mut adj = vec![(0u32, 0u32); 2 * edges.len()]; // (neighbour, edge id)
+    for (e, &(a, b)) in edges.iter().enumerate() {
+        adj[fill[a as usize]] = (b, e as u32);
+        fill[a as usize] += 1;
+        adj[fill[b as usize]] = (a, e as u32);
+        fill[b as usize] += 1;
+    }
+    let mut ptr = start.clone();
+    let mut used = vec![false; edges.len()];
+    let mut on_path = vec![usize::MAX; n];
+    let mut path: Vec<u32> = Vec::new();
+    let mut loops = 0;
+    let odd = (0..n).filter(|&v| (start[v + 1] - start[v]) % 2 == 1);
+    let even = (0..n).filter(|&v| (start[v + 1] - start[v]) % 2 == 0);
+    for s in odd.chain(even) {
+        loop {
+            // Start a walk at `s` if it has an unused edge.
+            path.clear();
+            path.push(s as u32);
+            on_path[s] = 0;
+            let mut moved = false;
+            loop {
+                let v = *path.last().expect("non-empty path") as usize;
+                while ptr[v] < start[v + 1] && used[adj[ptr[v]].1 as usize] {
+                    ptr[v] += 1;
+                }
+                if ptr[v] == start[v + 1] {
+                    break;
+                }
+                let (w, e) = adj[ptr[v]];
+                used[e as usize] = true;
+                moved = true;
+                let w = w as usize;
+                if on_path[w] != usize::MAX {
+                    loops += 1;
+                    let keep = on_path[w] + 1;
+                    for &u in &path[keep..] {
+                        on_path[u as usize] = usize::MAX;
+                    }
+                    path.truncate(keep);
+                } else {
+                    on_path[w] = path.len();
+                    path.push(w as u32);
+                }
+            }
+            if path.len() > 1 {
+                loops += 1; // an open chain
+            }
+            for &u in &path {
+                on_path[u as usize] = usize::MAX;
+            }
+            if !moved {
+                break;
+            }
+        }
+    }
+    loops
+}
+
+/// Union–find with path halving; the root of a set is its smallest element.
+struct UnionFind {
+    parent: Vec<u32>,
+}
+
+impl UnionFind {
+    fn new(n: usize) -> Self {
+        Self {
+            parent: (0..n as u32).collect(),
+        }
+    }
+
+    fn find(&mut self, mut x: u32) -> u32 {
+        while self.parent[x as usize] != x {
+            let g = self.parent[self.parent[x as usize] as usize];
+            self.parent[x as usize] = g;
+            x = g;
+        }
+        x
+    }
+
+    fn union(&mut self, a: u32, b: u32) {
+        let (ra, rb) = (self.find(a), self.find(b));
+        if ra < rb {
+            self.parent[rb as usize] = ra;
+        } else if rb < ra {
+            self.parent[ra as usize] = rb;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::generate;
+
+    fn raw() -> PrepareOptions {
+        PrepareOptions {
+            normalize_area: false,
+            ..PrepareOptions::default()
+        }
+    }
+
+    #[test]
+    fn prepare_options_default_from_empty_json() {
+        let o: PrepareOptions = serde_json::from_str("{}").unwrap();
+        assert_eq!(o, PrepareOptions::default());
+        assert_eq!(o.weld_tolerance, None);
+        assert_eq!(o.components, ComponentPolicy::Largest);
+        assert!(o.normalize_area);
+        assert_eq!(o.degenerate_area_ratio, 1e-14);
+        let o: PrepareOptions = serde_json::from_str(r#"{"components":"all"}"#).unwrap();
+        assert_eq!(o.components, ComponentPolicy::All);
+    }
+
+    #[test]
+    fn prepare_rejects_bad_options() {
+        let m = generate::icosphere(0);
+        for bad in [
+            PrepareOptions {
+                weld_tolerance: Some(-1.0),
+                ..raw()
+            },
+            PrepareOptions {
+                weld_tolerance: Some(f64::NAN),
+                ..raw()
+            },
+            PrepareOptions {
+                degenerate_area_ratio: f64::INFINITY,
+                ..raw()
+            },
+        ] {
+            assert_eq!(prepare(&m, &bad).unwrap_err().code(), "request.invalid");
+        }
+    }
+
+    #[test]
+    fn prepare_weld_exact_treats_negative_zero_as_zero() {
+        let v = vec![[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [0.0, 1.0, 2.0 + 1e-15]];
+        let (c, _) = weld_exact(&v);
+        assert_eq!(c, vec![0, 0, 2]);
+    }
+
+    #[test]
+    fn prepare_weld_tolerance_is_transitive_and_order_free() {
+        // A chain 0 - 1 - 2 with steps below the tolerance, 3 far away.
+        let v = vec![
+            [0.0, 0.0, 0.0],
+            [10.0, 0.0, 0.0],
+            [0.6, 0.0, 0.0],
+            [0.3, 0.0, 0.0],
+        ];
+        // bbox diagonal 10: eps 0.04 → 0.4 absolute.
+        let (c, s) = weld_tolerance(&v, 0.04);
+        assert_eq!(c, vec![0, 1, 0, 0]);
+        assert_eq!(s[0], 0); // lexicographically smallest member
+        let (c, _) = weld_tolerance(&v, 0.02); // 0.2 absolute: nothing merges
+        assert_eq!(c, vec![0, 1, 2, 3]);
+    }
+
+    #[test]
+    fn prepare_weld_tolerance_matches_brute_force() {
+        // Jittered points: many pairs near the tolerance, in every direction across cells.
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for (npts, eps) in [(400, 0.02), (400, 0.05), (300, 0.1), (50, 0.0001)] {
+            let v: Vec<[f64; 3]> = (0..npts)
+                .map(|_| [rnd(), rnd() * 0.5, rnd() * 2.0])
+                .collect();
+            let (c, s) = weld_tolerance(&v, eps);
+            let d = {
+                let (lo, hi) = v.iter().fold(
+                    ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
+                    |(lo, hi), p| {
+                        (
+                            [0, 1, 2].map(|k| lo[k].min(p[k])),
+                            [0, 1, 2].map(|k| hi[k].max(p[k])),
+                        )
+                    },
+                );
+                eps * norm(sub(hi, lo))
+            };
+            let mut uf = UnionFind::new(npts);
+            for i in 0..npts {
+                for j in i + 1..npts {
+                    if norm(sub(v[i], v[j])) <= d {
+                        uf.union(i as u32, j as u32);
+                    }
+                }
+            }
+            let expected: Vec<u32> = (0..npts as u32).map(|i| uf.find(i)).collect();
+            assert_eq!(c, expected, "eps {eps}");
+            let merged = c
+                .iter()
+                .enumerate()
+                .filter(|&(i, &r)| r as usize != i)
+                .count();
+            assert!(
+                eps < 0.001 || merged > 20,
+                "eps {eps}: only {merged} merged"
+            );
+            for (i, &r) in c.iter().enumerate() {
+                assert!(!lex_less(v[i], v[s[r as usize] as usize]));
+            }
+        }
+    }
+
+    #[test]
+    fn prepare_loops_of_a_bowtie_boundary() {
+        // Two triangles sharing only vertex 0: one boundary per triangle around the pinch.
+        let e = [(0, 1), (1, 2), (2, 0), (0, 3), (3, 4), (4, 0)];
+        assert_eq!(count_boundary_loops(5, &e), 2);
+        // Theta graph (two vertices joined by three paths): one cycle and one open chain.
+        let e = [(0, 2), (2, 1), (0, 3), (3, 1), (0, 4), (4, 1)];
+        assert_eq!(count_boundary_loops(5, &e), 2);
+        assert_eq!(count_boundary_loops(3, &[]), 0);
+    }
+
+    #[test]
+    fn prepare_edge_statistics_of_a_rectangle() {
+        let r = generate::rectangle(1.0, 1.0, 3, 2);
+        let t = analyse_edges(r.vertices.len(), &r.faces);
+        assert_eq!(t.boundary_edges, 2 * (3 + 2));
+        assert_eq!(t.boundary_loops, 1);
+        assert_eq!(t.nonmanifold_edges, 0);
+        assert_eq!(t.inconsistent, 0);
+        // V - E + F = 1 for a disc.
+        assert_eq!(12 - t.edges as i64 + 12, 1);
+    }
+
+    #[test]
+    fn prepare_duplicate_faces_any_orientation() {
+        let f = [[0, 1, 2], [2, 1, 0], [1, 2, 0], [0, 1, 3]];
+        assert_eq!(duplicate_faces(4, &f), vec![false, true, true, false]);
+    }
+}

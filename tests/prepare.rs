@@ -1,0 +1,765 @@
+//! Integration tests of `shapeseek::mesh::prepare`.
+
+use proptest::prelude::*;
+use shapeseek::mesh::generate::{bumpy_sphere, icosphere, rectangle, torus};
+use shapeseek::mesh::prepare::{
+    prepare, prepare_with_map, ComponentPolicy, PrepareOptions, PrepareReport,
+};
+use shapeseek::mesh::Mesh;
+use std::collections::{BTreeMap, BTreeSet};
+
+fn raw() -> PrepareOptions {
+    PrepareOptions {
+        normalize_area: false,
+        ..PrepareOptions::default()
+    }
+}
+
+fn all_raw() -> PrepareOptions {
+    PrepareOptions {
+        components: ComponentPolicy::All,
+        ..raw()
+    }
+}
+
+/// Appends `b` to `a` as a separate set of vertices and faces.
+fn union(a: &Mesh, b: &Mesh) -> Mesh {
+    let off = a.vertices.len() as u32;
+    let mut m = a.clone();
+    m.vertices.extend_from_slice(&b.vertices);
+    m.faces.extend(b.faces.iter().map(|f| f.map(|i| i + off)));
+    m
+}
+
+/// Deterministic pseudo-random permutation of 0..n (xorshift Fisher–Yates).
+fn permutation(n: usize, mut seed: u64) -> Vec<usize> {
+    let mut p: Vec<usize> = (0..n).collect();
+    for i in (1..n).rev() {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        p.swap(i, (seed % (i as u64 + 1)) as usize);
+    }
+    p
+}
+
+/// Vertex `i` of `m` becomes vertex `p[i]`.
+fn permute(m: &Mesh, p: &[usize]) -> Mesh {
+    let mut v = vec![[0.0; 3]; m.vertices.len()];
+    for (i, &pi) in p.iter().enumerate() {
+        v[pi] = m.vertices[i];
+    }
+    let f = m
+        .faces
+        .iter()
+        .map(|f| f.map(|i| p[i as usize] as u32))
+        .collect();
+    Mesh::new(v, f)
+}
+
+/// Splits `m` along the plane x = 0: faces whose centroid has x > 0 get their own copies of
+/// their vertices (identical coordinates with zeros negated to -0.0, moved by `offset`), as
+/// exporters do along seams.
+fn split_seam(m: &Mesh, offset: [f64; 3]) -> (Mesh, usize) {
+    let mut out = m.clone();
+    let mut copy: BTreeMap<u32, u32> = BTreeMap::new();
+    for f in &mut out.faces {
+        let cx: f64 = f.iter().map(|&i| m.vertices[i as usize][0]).sum();
+        if cx > 0.0 {
+            for i in f.iter_mut() {
+                let n = out.vertices.len() as u32;
+                let c = *copy.entry(*i).or_insert(n);
+                if c == n {
+                    let p = m.vertices[*i as usize];
+                    let mut q = [0.0; 3];
+                    for k in 0..3 {
+                        q[k] = if p[k] == 0.0 { -0.0 } else { p[k] + offset[k] };
+                    }
+                    out.vertices.push(q);
+                }
+                *i = c;
+            }
+        }
+    }
+    let copies = copy.len();
+    (out, copies)
+}
+
+fn check_counts(r: &PrepareReport) {
+    assert_eq!(
+        r.vertices_in,
+        r.vertices_out + r.welded_vertices + r.unreferenced_vertices,
+        "{r:?}"
+    );
+    assert_eq!(
+        r.faces_in,
+        r.faces_out + r.degenerate_faces + r.duplicate_faces + r.component_faces_dropped,
+        "{r:?}"
+    );
+}
+
+#[test]
+fn icosphere_passes_through_except_scale() {
+    let m = icosphere(3);
+    let (out, r) = prepare(&m, &PrepareOptions::default()).unwrap();
+    check_counts(&r);
+    assert_eq!(r.vertices_out, m.vertices.len());
+    assert_eq!(r.faces_out, m.faces.len());
+    assert_eq!(out.faces, m.faces);
+    assert_eq!(
+        (
+            r.welded_vertices,
+            r.degenerate_faces,
+            r.duplicate_faces,
+            r.unreferenced_vertices
+        ),
+        (0, 0, 0, 0)
+    );
+    assert_eq!((r.components, r.components_kept), (1, 1));
+    assert_eq!(r.dropped_area_fraction, 0.0);
+    assert_eq!((r.boundary_edges, r.boundary_loops), (0, 0));
+    assert_eq!(
+        (r.nonmanifold_edges, r.inconsistent_orientation_edges),
+        (0, 0)
+    );
+    assert_eq!(r.euler_characteristic, 2);
+    assert!((out.area() - 1.0).abs() < 1e-12, "{}", out.area());
+    assert!((r.original_area - m.area()).abs() < 1e-12);
+    assert!((r.scale_factor - 1.0 / m.area().sqrt()).abs() < 1e-15);
+    // Centred: area-weighted centroid at the origin; and the shape is only scaled and shifted.
+    let mut c = [0.0; 3];
+    for f in &out.faces {
+        let w = shapeseek::mesh::triangle_area(&out, f) / 3.0;
+        for &i in f {
+            for (ck, pk) in c.iter_mut().zip(out.vertices[i as usize]) {
+                *ck += w * pk;
+            }
+        }
+    }
+    assert!(c.iter().all(|x| x.abs() < 1e-12), "{c:?}");
+    let shift = [0, 1, 2].map(|k| m.vertices[0][k] - out.vertices[0][k] / r.scale_factor);
+    for (p, q) in m.vertices.iter().zip(&out.vertices) {
+        for k in 0..3 {
+            assert!((q[k] / r.scale_factor + shift[k] - p[k]).abs() < 1e-12);
+        }
+    }
+    // Without normalisation the mesh is returned unchanged.
+    let (same, r) = prepare(&m, &raw()).unwrap();
+    assert_eq!(same, m);
+    assert_eq!(r.scale_factor, 1.0);
+}
+
+#[test]
+fn torus_has_euler_zero() {
+    let (out, r) = prepare(&torus(2.0, 0.5, 24, 12), &PrepareOptions::default()).unwrap();
+    assert_eq!(r.euler_characteristic, 0);
+    assert_eq!((r.vertices_out, r.faces_out), (288, 576));
+    assert_eq!(
+        (
+            r.boundary_edges,
+            r.nonmanifold_edges,
+            r.inconsistent_orientation_edges
+        ),
+        (0, 0, 0)
+    );
+    assert!((out.area() - 1.0).abs() < 1e-12);
+}
+
+#[test]
+fn rectangle_has_one_boundary_loop() {
+    let (_, r) = prepare(&rectangle(2.0, 1.0, 5, 3), &PrepareOptions::default()).unwrap();
+    assert_eq!(r.boundary_loops, 1);
+    assert_eq!(r.boundary_edges, 2 * (5 + 3));
+    assert_eq!(r.euler_characteristic, 1);
+    assert_eq!(r.inconsistent_orientation_edges, 0);
+}
+
+#[test]
+fn two_spheres_largest_keeps_the_bigger_one() {
+    let big = icosphere(2);
+    let mut small = icosphere(2);
+    small.scale(0.5);
+    small.transform(
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        [5.0, 0.0, 0.0],
+    );
+    // The small one first, so that "first component" is not the answer.
+    let m = union(&small, &big);
+    let (out, r, map) = prepare_with_map(&m, &raw()).unwrap();
+    check_counts(&r);
+    assert_eq!((r.components, r.components_kept), (2, 1));
+    assert_eq!(out, big);
+    let expected = small.area() / (small.area() + big.area());
+    assert!(
+        (r.dropped_area_fraction - expected).abs() < 1e-14,
+        "{}",
+        r.dropped_area_fraction
+    );
+    assert!((r.dropped_area_fraction - 0.2).abs() < 1e-12); // (1/2)² / (1 + (1/2)²)
+    assert_eq!(r.component_faces_dropped, small.faces.len());
+    assert_eq!(r.unreferenced_vertices, small.vertices.len());
+    assert!(map[..small.vertices.len()].iter().all(Option::is_none));
+    assert!(map[small.vertices.len()..]
+        .iter()
+        .enumerate()
+        .all(|(i, &j)| j == Some(i as u32)));
+
+    let (out, r) = prepare(&m, &all_raw()).unwrap();
+    assert_eq!((r.components, r.components_kept), (2, 2));
+    assert_eq!(r.dropped_area_fraction, 0.0);
+    assert_eq!(out, m);
+    assert_eq!(r.euler_characteristic, 4);
+}
+
+#[test]
+fn seam_split_sphere_is_welded_back() {
+    let m = icosphere(2);
+    let (split, copies) = split_seam(&m, [0.0; 3]);
+    assert!(copies > 10);
+    // Without welding these would be two open hemispheres.
+    let (out, r, map) = prepare_with_map(&split, &raw()).unwrap();
+    check_counts(&r);
+    assert_eq!(r.welded_vertices, copies);
+    assert_eq!(r.unreferenced_vertices, 0);
+    assert_eq!(
+        (r.components, r.boundary_edges, r.euler_characteristic),
+        (1, 0, 2)
+    );
+    assert_eq!(out, m);
+    for (i, j) in map.iter().enumerate().skip(m.vertices.len()) {
+        let j = j.expect("copy kept") as usize;
+        assert_eq!(out.vertices[j], split.vertices[i]); // -0.0 == 0.0
+    }
+}
+
+#[test]
+fn nearby_vertices_are_welded_only_with_a_tolerance() {
+    let m = rectangle(1.0, 1.0, 4, 4);
+    let split = |m: &Mesh| {
+        // Faces right of x = 0.5 get their own vertices, moved by 1e-9 along y.
+        let mut s = m.clone();
+        let mut copy: BTreeMap<u32, u32> = BTreeMap::new();
+        for f in &mut s.faces {
+            let cx: f64 = f.iter().map(|&i| m.vertices[i as usize][0]).sum::<f64>() / 3.0;
+            if cx > 0.5 {
+                for i in f.iter_mut() {
+                    let n = s.vertices.len() as u32;
+                    let c = *copy.entry(*i).or_insert(n);
+                    if c == n {
+                        let p = m.vertices[*i as usize];
+                        s.vertices.push([p[0], p[1] + 1e-9, p[2]]);
+                    }
+                    *i = c;
+                }
+            }
+        }
+        s
+    };
+    let s = split(&m);
+    let (out, r) = prepare(&s, &all_raw()).unwrap();
+    check_counts(&r);
+    assert_eq!(r.welded_vertices, 0);
+    assert_eq!(r.components, 2);
+    assert_eq!(r.boundary_loops, 2);
+    assert_eq!(out.vertices.len(), s.vertices.len() - 10); // originals right of the seam unused
+
+    let opts = PrepareOptions {
+        weld_tolerance: Some(1e-6),
+        ..all_raw()
+    };
+    let (out, r) = prepare(&s, &opts).unwrap();
+    check_counts(&r);
+    // The five seam copies, plus the ten unused originals right of the seam (each within 1e-9
+    // of its copy): all welded, so nothing is left unreferenced.
+    assert_eq!((r.welded_vertices, r.unreferenced_vertices), (15, 0));
+    assert_eq!(
+        (r.components, r.boundary_loops, r.euler_characteristic),
+        (1, 1, 1)
+    );
+    assert_eq!(out.faces.len(), m.faces.len());
+    assert_eq!(out.vertices.len(), m.vertices.len());
+    assert!((out.area() - 1.0).abs() < 1e-8);
+    // A tolerance far below the gap welds nothing.
+    let opts = PrepareOptions {
+        weld_tolerance: Some(1e-12),
+        ..all_raw()
+    };
+    assert_eq!(prepare(&s, &opts).unwrap().1.welded_vertices, 0);
+}
+
+#[test]
+fn degenerate_faces_are_dropped_and_counted() {
+    let m = icosphere(1);
+    let mut d = m.clone();
+    let n = d.vertices.len() as u32;
+    d.vertices
+        .extend_from_slice(&[[3.0, 0.0, 0.0], [4.0, 0.0, 0.0], [5.0, 0.0, 0.0]]);
+    d.faces.push([0, 0, 1]); // repeated index
+    d.faces.push([2, 1, 1]); // repeated index
+    d.faces.push([n, n + 1, n + 2]); // collinear: zero area
+    d.faces.push([n, n + 2, n]); // both
+    let (out, r) = prepare(&d, &raw()).unwrap();
+    check_counts(&r);
+    assert_eq!(r.degenerate_faces, 4);
+    assert_eq!(r.unreferenced_vertices, 3);
+    assert_eq!(r.components, 1);
+    assert_eq!(out, m);
+}
+
+#[test]
+fn degenerate_threshold_is_relative_to_the_mean_area() {
+    let base = rectangle(1.0, 1.0, 2, 2); // 8 faces of area 1/8
+    let with_sliver = |ratio: f64| {
+        let mut m = base.clone();
+        let n = m.vertices.len() as u32;
+        let h = 2.0 * ratio * 0.125; // area = h / 2 ≈ ratio × mean
+        m.vertices
+            .extend_from_slice(&[[5.0, 0.0, 0.0], [6.0, 0.0, 0.0], [5.0, h, 0.0]]);
+        m.faces.push([n, n + 1, n + 2]);
+        m
+    };
+    let (_, r) = prepare(&with_sliver(1e-16), &all_raw()).unwrap();
+    assert_eq!((r.degenerate_faces, r.components, r.faces_out), (1, 1, 8));
+    let (_, r) = prepare(&with_sliver(1e-12), &all_raw()).unwrap();
+    assert_eq!((r.degenerate_faces, r.components, r.faces_out), (0, 2, 9));
+    // A ratio of 0 keeps every face of non-zero area.
+    let opts = PrepareOptions {
+        degenerate_area_ratio: 0.0,
+        ..all_raw()
+    };
+    assert_eq!(
+        prepare(&with_sliver(1e-16), &opts)
+            .unwrap()
+            .1
+            .degenerate_faces,
+        0
+    );
+}
+
+#[test]
+fn duplicate_faces_are_dropped_and_counted() {
+    let m = icosphere(1);
+    let mut d = m.clone();
+    d.faces.push(m.faces[3]);
+    d.faces.push([m.faces[5][2], m.faces[5][1], m.faces[5][0]]); // reversed copy
+    d.faces.push([m.faces[5][1], m.faces[5][2], m.faces[5][0]]); // rotated copy
+    let (out, r) = prepare(&d, &raw()).unwrap();
+    check_counts(&r);
+    assert_eq!((r.duplicate_faces, r.degenerate_faces), (3, 0));
+    assert_eq!(out, m);
+    assert_eq!(r.nonmanifold_edges, 0);
+}
+
+#[test]
+fn nonmanifold_book_is_tolerated() {
+    let m = Mesh::new(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [0.0, -1.0, -1.0],
+        ],
+        vec![[0, 1, 2], [1, 0, 3], [0, 1, 4]],
+    );
+    let (out, r) = prepare(&m, &PrepareOptions::default()).unwrap();
+    check_counts(&r);
+    assert_eq!(r.nonmanifold_edges, 1);
+    assert_eq!(r.boundary_edges, 6);
+    assert_eq!(r.faces_out, 3);
+    assert_eq!(r.components, 1);
+    assert_eq!(r.euler_characteristic, 5 - 7 + 3);
+    // Theta-shaped boundary graph: one cycle and one open chain.
+    assert_eq!(r.boundary_loops, 2);
+    assert!((out.area() - 1.0).abs() < 1e-12);
+}
+
+#[test]
+fn flipped_face_is_counted_as_inconsistent() {
+    let mut m = icosphere(1);
+    m.faces[7].swap(0, 1);
+    let (_, r) = prepare(&m, &PrepareOptions::default()).unwrap();
+    assert_eq!(r.inconsistent_orientation_edges, 3);
+    assert_eq!(
+        (
+            r.boundary_edges,
+            r.nonmanifold_edges,
+            r.euler_characteristic
+        ),
+        (0, 0, 2)
+    );
+}
+
+#[test]
+fn non_finite_and_bad_index_are_rejected() {
+    let mut m = icosphere(1);
+    m.vertices[7][1] = f64::NAN;
+    m.vertices[9][0] = f64::INFINITY;
+    let e = prepare(&m, &PrepareOptions::default()).unwrap_err();
+    assert_eq!(e.code(), "mesh.non_finite");
+    assert!(
+        matches!(e, shapeseek::Error::NonFinite { vertex: 7 }),
+        "{e:?}"
+    );
+
+    let mut m = icosphere(1);
+    let n = m.vertices.len() as u32;
+    m.faces[4][2] = n;
+    let e = prepare(&m, &PrepareOptions::default()).unwrap_err();
+    assert_eq!(e.code(), "request.invalid");
+    assert!(e.to_string().contains("face 4"), "{e}");
+}
+
+#[test]
+fn empty_and_all_degenerate_are_rejected() {
+    let e = prepare(&Mesh::default(), &PrepareOptions::default()).unwrap_err();
+    assert_eq!(e.code(), "mesh.empty");
+    assert!(e.to_string().contains("no faces"), "{e}");
+
+    let m = Mesh::new(icosphere(0).vertices, vec![]);
+    assert_eq!(
+        prepare(&m, &PrepareOptions::default()).unwrap_err().code(),
+        "mesh.empty"
+    );
+
+    let m = Mesh::new(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [2.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+        ],
+        vec![[0, 1, 2], [0, 0, 1], [0, 3, 1]],
+    );
+    let e = prepare(&m, &PrepareOptions::default()).unwrap_err();
+    assert_eq!(e.code(), "mesh.empty");
+    assert!(e.to_string().contains("degenerate"), "{e}");
+}
+
+#[test]
+fn unreferenced_vertices_are_dropped_in_order() {
+    let m = rectangle(1.0, 2.0, 3, 3);
+    // Interleave an unused vertex after every original one, and one at the front.
+    let mut v = vec![[9.0, 9.0, 9.0]];
+    for (i, p) in m.vertices.iter().enumerate() {
+        v.push(*p);
+        v.push([i as f64, -1.0, 7.0]);
+    }
+    let f = m.faces.iter().map(|f| f.map(|i| 2 * i + 1)).collect();
+    let d = Mesh::new(v, f);
+    let (out, r, map) = prepare_with_map(&d, &raw()).unwrap();
+    check_counts(&r);
+    assert_eq!(r.unreferenced_vertices, m.vertices.len() + 1);
+    assert_eq!(out, m);
+    for (i, j) in map.iter().enumerate() {
+        if i % 2 == 1 {
+            assert_eq!(*j, Some((i / 2) as u32));
+        } else {
+            assert_eq!(*j, None);
+        }
+    }
+}
+
+/// A messy test shape: bumpy sphere split along a seam, a small extra component, a duplicate
+/// and a degenerate face, an unused vertex.
+fn messy(offset: [f64; 3]) -> Mesh {
+    let (mut m, _) = split_seam(&bumpy_sphere(2, 0.3), offset);
+    let mut small = icosphere(1);
+    small.scale(0.2);
+    small.transform(
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        [4.0, 0.0, 0.0],
+    );
+    m = union(&m, &small);
+    m.faces.push(m.faces[10]);
+    m.faces.push([3, 3, 4]);
+    m.vertices.push([1.0, 2.0, 3.0]);
+    m
+}
+
+fn assert_same_up_to_permutation(
+    a: &(Mesh, PrepareReport, Vec<Option<u32>>),
+    b: &(Mesh, PrepareReport, Vec<Option<u32>>),
+    p: &[usize],
+) {
+    assert_eq!(a.1, b.1); // every count and every area, bitwise
+                          // sigma: output index in a -> output index in b.
+    let mut sigma = vec![u32::MAX; a.0.vertices.len()];
+    for (i, ja) in a.2.iter().enumerate() {
+        let jb = b.2[p[i]];
+        assert_eq!(ja.is_some(), jb.is_some());
+        if let (Some(ja), Some(jb)) = (ja, jb) {
+            assert!(sigma[*ja as usize] == u32::MAX || sigma[*ja as usize] == jb);
+            sigma[*ja as usize] = jb;
+        }
+    }
+    assert!(sigma.iter().all(|&s| s != u32::MAX));
+    for (j, &s) in sigma.iter().enumerate() {
+        assert_eq!(a.0.vertices[j], b.0.vertices[s as usize]);
+    }
+    let fa: Vec<[u32; 3]> =
+        a.0.faces
+            .iter()
+            .map(|f| f.map(|i| sigma[i as usize]))
+            .collect();
+    assert_eq!(fa, b.0.faces);
+}
+
+#[test]
+fn vertex_permutation_invariance() {
+    for (offset, opts) in [
+        ([0.0; 3], PrepareOptions::default()),
+        (
+            [0.0; 3],
+            PrepareOptions {
+                components: ComponentPolicy::All,
+                ..PrepareOptions::default()
+            },
+        ),
+        (
+            [1e-9, -2e-9, 0.0],
+            PrepareOptions {
+                weld_tolerance: Some(1e-6),
+                ..PrepareOptions::default()
+            },
+        ),
+    ] {
+        let m = messy(offset);
+        let a = prepare_with_map(&m, &opts).unwrap();
+        assert!(a.1.welded_vertices > 0 && a.1.duplicate_faces == 1 && a.1.degenerate_faces == 1);
+        assert_eq!(
+            a.1.euler_characteristic,
+            if a.1.components_kept == 2 { 4 } else { 2 }
+        );
+        for seed in [1u64, 99, 12345] {
+            let p = permutation(m.vertices.len(), seed);
+            let b = prepare_with_map(&permute(&m, &p), &opts).unwrap();
+            assert_same_up_to_permutation(&a, &b, &p);
+        }
+    }
+}
+
+#[test]
+fn normalisation_is_scale_and_translation_invariant() {
+    let m = messy([0.0; 3]);
+    let (a, ra) = prepare(&m, &PrepareOptions::default()).unwrap();
+    for (s, t) in [
+        (7.3, [0.0; 3]),
+        (0.013, [2.0, -5.0, 11.0]),
+        (1e4, [1e3, 0.0, 0.0]),
+    ] {
+        let mut scaled = m.clone();
+        scaled.transform([[s, 0.0, 0.0], [0.0, s, 0.0], [0.0, 0.0, s]], t);
+        let (b, rb) = prepare(&scaled, &PrepareOptions::default()).unwrap();
+        assert_eq!(a.faces, b.faces);
+        assert_eq!(ra.faces_out, rb.faces_out);
+        assert!((rb.original_area / ra.original_area - s * s).abs() < 1e-12 * s * s);
+        let worst = a
+            .vertices
+            .iter()
+            .zip(&b.vertices)
+            .flat_map(|(p, q)| (0..3).map(move |k| (p[k] - q[k]).abs()))
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-12, "scale {s}: max difference {worst}");
+    }
+}
+
+/// Independent edge statistics with ordered maps: (edges, boundary, non-manifold, inconsistent).
+fn edge_stats(m: &Mesh) -> (usize, usize, usize, usize) {
+    let mut e: BTreeMap<(u32, u32), Vec<bool>> = BTreeMap::new();
+    for f in &m.faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            e.entry((a.min(b), a.max(b))).or_default().push(a < b);
+        }
+    }
+    let boundary = e.values().filter(|d| d.len() == 1).count();
+    let nonmanifold = e.values().filter(|d| d.len() > 2).count();
+    let inconsistent = e.values().filter(|d| d.len() == 2 && d[0] == d[1]).count();
+    (e.len(), boundary, nonmanifold, inconsistent)
+}
+
+/// When every boundary vertex has exactly two boundary edges, the number of boundary cycles
+/// (connected components of the boundary graph, by flood fill); `None` otherwise.
+fn simple_boundary_cycles(m: &Mesh) -> Option<usize> {
+    let mut count: BTreeMap<(u32, u32), usize> = BTreeMap::new();
+    for f in &m.faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            *count.entry((a.min(b), a.max(b))).or_default() += 1;
+        }
+    }
+    let mut adj: BTreeMap<u32, Vec<u32>> = BTreeMap::new();
+    for (&(a, b), _) in count.iter().filter(|(_, &c)| c == 1) {
+        adj.entry(a).or_default().push(b);
+        adj.entry(b).or_default().push(a);
+    }
+    if adj.values().any(|n| n.len() != 2) {
+        return None;
+    }
+    let mut seen = BTreeSet::new();
+    let mut cycles = 0;
+    for &v in adj.keys() {
+        if seen.insert(v) {
+            cycles += 1;
+            let mut stack = vec![v];
+            while let Some(u) = stack.pop() {
+                for &w in &adj[&u] {
+                    if seen.insert(w) {
+                        stack.push(w);
+                    }
+                }
+            }
+        }
+    }
+    Some(cycles)
+}
+
+fn soup() -> impl Strategy<Value = Mesh> {
+    // Coordinates on a coarse grid: many exact duplicates and collinear (zero-area) triples.
+    (3usize..24).prop_flat_map(|n| {
+        (
+            prop::collection::vec(prop::array::uniform3(-2i32..3), n),
+            prop::collection::vec(prop::array::uniform3(0..n as u32), 1..40),
+        )
+            .prop_map(|(v, f)| {
+                let v = v.iter().map(|p| p.map(|c| c as f64 * 0.5)).collect();
+                Mesh::new(v, f)
+            })
+    })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+
+    #[test]
+    fn prepare_invariants_on_random_soups(
+        m in soup(),
+        all in any::<bool>(),
+        normalize in any::<bool>(),
+    ) {
+        let opts = PrepareOptions {
+            components: if all { ComponentPolicy::All } else { ComponentPolicy::Largest },
+            normalize_area: normalize,
+            ..PrepareOptions::default()
+        };
+        let (out, r, map) = match prepare_with_map(&m, &opts) {
+            Ok(x) => x,
+            Err(e) => {
+                prop_assert_eq!(e.code(), "mesh.empty");
+                // Then indeed every face has a repeated position or is flat.
+                for f in &m.faces {
+                    prop_assert!(shapeseek::mesh::triangle_area(&m, f) == 0.0);
+                }
+                return Ok(());
+            }
+        };
+        check_counts(&r);
+        let nv = out.vertices.len();
+        prop_assert_eq!((r.vertices_out, r.faces_out), (nv, out.faces.len()));
+        prop_assert!(!out.faces.is_empty());
+        let mut referenced = vec![false; nv];
+        let mut sets = BTreeSet::new();
+        for f in &out.faces {
+            prop_assert!(f.iter().all(|&i| (i as usize) < nv));
+            prop_assert!(f[0] != f[1] && f[1] != f[2] && f[0] != f[2]);
+            prop_assert!(shapeseek::mesh::triangle_area(&out, f) > 0.0);
+            let mut s = *f;
+            s.sort_unstable();
+            prop_assert!(sets.insert(s), "duplicate face {:?}", f);
+            for &i in f {
+                referenced[i as usize] = true;
+            }
+        }
+        prop_assert!(referenced.iter().all(|&x| x));
+        // Distinct output positions (exact welding).
+        let pos: BTreeSet<[u64; 3]> =
+            out.vertices.iter().map(|p| p.map(|c| (c + 0.0).to_bits())).collect();
+        prop_assert_eq!(pos.len(), nv);
+        if normalize {
+            prop_assert!((out.area() - 1.0).abs() < 1e-12, "area {}", out.area());
+        } else {
+            prop_assert_eq!(r.scale_factor, 1.0);
+            for (i, j) in map.iter().enumerate() {
+                if let Some(j) = j {
+                    prop_assert_eq!(out.vertices[*j as usize], m.vertices[i]);
+                }
+            }
+        }
+        prop_assert!(map.iter().flatten().all(|&j| (j as usize) < nv));
+        let distinct_used: BTreeSet<u32> = map.iter().flatten().copied().collect();
+        prop_assert_eq!(distinct_used.len(), nv);
+        let (e, b, nm, inc) = edge_stats(&out);
+        prop_assert_eq!(r.euler_characteristic, nv as i64 - e as i64 + out.faces.len() as i64);
+        prop_assert_eq!((r.boundary_edges, r.nonmanifold_edges, r.inconsistent_orientation_edges), (b, nm, inc));
+        prop_assert!(r.boundary_loops <= r.boundary_edges);
+        if r.nonmanifold_edges == 0 {
+            // Only closed simple cycles (no open chains), each of at least three edges.
+            prop_assert!(3 * r.boundary_loops <= r.boundary_edges);
+        }
+        if let Some(cycles) = simple_boundary_cycles(&out) {
+            prop_assert_eq!(r.boundary_loops, cycles);
+        }
+        prop_assert_eq!(r.boundary_edges == 0, r.boundary_loops == 0);
+        prop_assert!(r.components_kept >= 1 && r.components_kept <= r.components);
+        if all {
+            prop_assert_eq!(r.components_kept, r.components);
+            prop_assert_eq!(r.dropped_area_fraction, 0.0);
+            prop_assert_eq!(r.component_faces_dropped, 0);
+        } else {
+            prop_assert_eq!(r.components_kept, 1);
+            prop_assert!((0.0..=0.5).contains(&r.dropped_area_fraction) || r.components > 2);
+            prop_assert!((0.0..1.0).contains(&r.dropped_area_fraction));
+        }
+    }
+}
+
+/// Speed check (not a pass/fail test): `cargo test --test prepare speed -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn speed_200k_vertices() {
+    let m = torus(3.0, 1.0, 500, 400); // 200 000 vertices, 400 000 faces
+    let opts = PrepareOptions::default();
+    let mut best = f64::INFINITY;
+    for _ in 0..5 {
+        let t = std::time::Instant::now();
+        let (out, r) = prepare(&m, &opts).unwrap();
+        best = best.min(t.elapsed().as_secs_f64());
+        assert_eq!((out.vertices.len(), r.euler_characteristic), (200_000, 0));
+    }
+    println!(
+        "prepare, torus 200k vertices / 400k faces, exact weld: best of 5 {:.1} ms",
+        best * 1e3
+    );
+
+    let opts = PrepareOptions {
+        weld_tolerance: Some(1e-7),
+        ..PrepareOptions::default()
+    };
+    let mut best = f64::INFINITY;
+    for _ in 0..5 {
+        let t = std::time::Instant::now();
+        let (_, r) = prepare(&m, &opts).unwrap();
+        best = best.min(t.elapsed().as_secs_f64());
+        assert_eq!(r.welded_vertices, 0);
+    }
+    println!("  with weld_tolerance 1e-7: best of 5 {:.1} ms", best * 1e3);
+
+    // Triangle soup: every face with its own three vertices (1.2M input vertices).
+    let mut s = Mesh::default();
+    for f in &m.faces {
+        let n = s.vertices.len() as u32;
+        s.vertices.extend(f.map(|i| m.vertices[i as usize]));
+        s.faces.push([n, n + 1, n + 2]);
+    }
+    let t = std::time::Instant::now();
+    let (out, r) = prepare(&s, &PrepareOptions::default()).unwrap();
+    println!(
+        "  same torus as a soup of 1.2M vertices: {:.1} ms",
+        t.elapsed().as_secs_f64() * 1e3
+    );
+    assert_eq!(
+        (out.vertices.len(), r.welded_vertices),
+        (200_000, 1_000_000)
+    );
+}
