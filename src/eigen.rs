@@ -40,11 +40,11 @@
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::matmul::matmul;
+use faer::reborrow::{Reborrow, ReborrowMut};
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, LltRef, SymbolicCholesky, SymmetricOrdering,
 };
 use faer::sparse::SparseColMat;
-use faer::reborrow::{Reborrow, ReborrowMut};
 use faer::{Accum, Conj, Mat, MatMut, MatRef, Par, Side};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
@@ -163,7 +163,9 @@ pub fn smallest_eigenpairs(
         )));
     }
     if stiffness.val().iter().any(|v| !v.is_finite()) {
-        return Err(Error::InvalidArgument("stiffness has non-finite entries".into()));
+        return Err(Error::InvalidArgument(
+            "stiffness has non-finite entries".into(),
+        ));
     }
     let k = opts.k.clamp(1, n);
     let area: f64 = mass.iter().sum();
@@ -184,7 +186,13 @@ pub fn smallest_eigenpairs(
         krylov_schur(stiffness, mass, k, b, lambda_ref, opts)?
     };
     fix_signs(&mut out.vectors);
-    out.residuals = relative_residuals(stiffness, mass, &out.values, out.vectors.as_ref(), lambda_ref);
+    out.residuals = relative_residuals(
+        stiffness,
+        mass,
+        &out.values,
+        out.vectors.as_ref(),
+        lambda_ref,
+    );
     let worst = out.residuals.iter().cloned().fold(0.0, f64::max);
     if !(worst <= MAX_ACCEPTED_RESIDUAL.max(opts.tolerance)) {
         return Err(Error::Numerical(format!(
@@ -259,7 +267,11 @@ fn fix_signs(vectors: &mut Mat<f64>) {
 }
 
 /// Dense path: eigen-decomposition of `A^{-1/2} L A^{-1/2}`.
-fn dense_eigenpairs(stiffness: &SparseColMat<usize, f64>, mass: &[f64], k: usize) -> Result<Eigenpairs> {
+fn dense_eigenpairs(
+    stiffness: &SparseColMat<usize, f64>,
+    mass: &[f64],
+    k: usize,
+) -> Result<Eigenpairs> {
     let t0 = Instant::now();
     let n = mass.len();
     let s_inv: Vec<f64> = mass.iter().map(|a| 1.0 / a.sqrt()).collect();
@@ -327,8 +339,10 @@ impl ShiftInvert {
         .map_err(|e| Error::Numerical(format!("symbolic Cholesky: {e:?}")))?;
         let mut values = vec![0.0f64; symbolic.len_val()];
         let par = Par::rayon(0);
-        let mut mem = MemBuffer::try_new(symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()))
-            .map_err(|_| Error::Numerical("out of memory for the Cholesky workspace".into()))?;
+        let mut mem = MemBuffer::try_new(
+            symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()),
+        )
+        .map_err(|_| Error::Numerical("out of memory for the Cholesky workspace".into()))?;
         symbolic
             .factorize_numeric_llt::<f64>(
                 &mut values,
@@ -339,7 +353,9 @@ impl ShiftInvert {
                 MemStack::new(&mut mem),
                 Default::default(),
             )
-            .map_err(|e| Error::Numerical(format!("Cholesky of L − σA failed (is L PSD?): {e:?}")))?;
+            .map_err(|e| {
+                Error::Numerical(format!("Cholesky of L − σA failed (is L PSD?): {e:?}"))
+            })?;
         Ok(Self {
             symbolic,
             values,
@@ -379,7 +395,10 @@ impl ShiftInvert {
         if x.ncols() == 0 {
             return;
         }
-        let mut mem = MemBuffer::new(self.symbolic.solve_in_place_scratch::<f64>(x.ncols(), Par::Seq));
+        let mut mem = MemBuffer::new(
+            self.symbolic
+                .solve_in_place_scratch::<f64>(x.ncols(), Par::Seq),
+        );
         LltRef::new(&self.symbolic, &self.values).solve_in_place_with_conj(
             Conj::No,
             x,
@@ -616,7 +635,14 @@ fn krylov_schur(
         // Ritz residual estimates ‖R · y_last‖ (only the last block couples to the next one).
         let ylast = y.as_ref().submatrix(m - b, 0, b, m);
         let mut ry = Mat::<f64>::zeros(b, m);
-        matmul(ry.as_mut(), Accum::Replace, last_r.as_ref(), ylast, 1.0, Par::Seq);
+        matmul(
+            ry.as_mut(),
+            Accum::Replace,
+            last_r.as_ref(),
+            ylast,
+            1.0,
+            Par::Seq,
+        );
         let resid: Vec<f64> = (0..m).map(|j| ry.col(j).norm_l2()).collect();
         let converged = (0..k).all(|j| resid[j] <= inner_tol * theta[j].abs());
 
@@ -659,10 +685,13 @@ fn krylov_schur(
             }
             // The true residual is the Ritz residual amplified by the high-frequency content of
             // the error: tighten the inner tolerance by the measured ratio.
-            inner_tol = (inner_tol * (0.3 * opts.tolerance / worst).min(0.5)).max(INNER_TOLERANCE_FLOOR);
+            inner_tol =
+                (inner_tol * (0.3 * opts.tolerance / worst).min(0.5)).max(INNER_TOLERANCE_FLOOR);
         }
         if restarts >= opts.max_restarts {
-            let worst = (0..k).map(|j| resid[j] / theta[j].abs()).fold(0.0, f64::max);
+            let worst = (0..k)
+                .map(|j| resid[j] / theta[j].abs())
+                .fold(0.0, f64::max);
             return Err(Error::Numerical(format!(
                 "Krylov–Schur did not converge in {restarts} restarts (worst Ritz residual {worst:.2e})"
             )));
@@ -689,7 +718,14 @@ fn restart_basis(v: MatMut<'_, f64>, y: MatRef<'_, f64>, m: usize) {
     if n <= ROW_CHUNK {
         let p = y.ncols();
         let mut tmp = Mat::<f64>::zeros(n, p);
-        matmul(tmp.as_mut(), Accum::Replace, v.rb().subcols(0, m), y, 1.0, Par::Seq);
+        matmul(
+            tmp.as_mut(),
+            Accum::Replace,
+            v.rb().subcols(0, m),
+            y,
+            1.0,
+            Par::Seq,
+        );
         v.subcols_mut(0, p).copy_from(&tmp);
         return;
     }

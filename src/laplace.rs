@@ -146,7 +146,10 @@ mod tests {
     fn equilateral_triangle_by_hand() {
         // Each angle is 60°, cot = 1/√3, single triangle: w_ij = cot/2.
         let h = 3f64.sqrt() / 2.0;
-        let mesh = Mesh::new(vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, h, 0.0]], vec![[0, 1, 2]]);
+        let mesh = Mesh::new(
+            vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, h, 0.0]],
+            vec![[0, 1, 2]],
+        );
         let l = cotangent_laplacian(&mesh).unwrap();
         let d = dense(&l);
         let w = 0.5 / 3f64.sqrt();
@@ -185,7 +188,11 @@ mod tests {
         let mesh = generate::rectangle(2.0, 1.0, 8, 5);
         let l = cotangent_laplacian(&mesh).unwrap();
         let d = dense(&l);
-        let u: Vec<f64> = mesh.vertices.iter().map(|p| 3.0 * p[0] - 2.0 * p[1] + 1.0).collect();
+        let u: Vec<f64> = mesh
+            .vertices
+            .iter()
+            .map(|p| 3.0 * p[0] - 2.0 * p[1] + 1.0)
+            .collect();
         for (i, p) in mesh.vertices.iter().enumerate() {
             let interior = p[0] > 1e-9 && p[0] < 2.0 - 1e-9 && p[1] > 1e-9 && p[1] < 1.0 - 1e-9;
             if interior {

@@ -9,6 +9,7 @@ pub mod eigen;
 pub mod error;
 pub mod laplace;
 pub mod mesh;
+pub mod pipeline;
 pub mod spectrum;
 
 pub use error::{Error, Result};
