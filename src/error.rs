@@ -114,7 +114,11 @@ impl Error {
     }
 
     /// Shorthand for a parse error.
-    pub fn parse(format: &'static str, location: Option<Location>, message: impl Into<String>) -> Self {
+    pub fn parse(
+        format: &'static str,
+        location: Option<Location>,
+        message: impl Into<String>,
+    ) -> Self {
         Error::Parse {
             format,
             location,

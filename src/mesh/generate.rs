@@ -142,7 +142,9 @@ pub fn bumpy_sphere(subdivisions: u32, amplitude: f64) -> Mesh {
     let mut mesh = icosphere(subdivisions);
     for v in &mut mesh.vertices {
         let [x, y, z] = *v;
-        let r = 1.0 + amplitude * (0.6 * (3.0 * x + 0.5).sin() * (2.0 * y).cos() + 0.4 * z * z * x + 0.3 * y);
+        let r = 1.0
+            + amplitude
+                * (0.6 * (3.0 * x + 0.5).sin() * (2.0 * y).cos() + 0.4 * z * z * x + 0.3 * y);
         *v = [x * r * 1.3, y * r, z * r * 0.8];
     }
     mesh

@@ -4,6 +4,8 @@
 //! storage.
 
 pub mod generate;
+pub mod read;
+pub mod write;
 
 use serde::{Deserialize, Serialize};
 
