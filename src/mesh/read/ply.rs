@@ -93,7 +93,7 @@ enum Encoding {
 /// The body, either as text tokens or as binary data.
 enum Body<'a> {
     Ascii {
-        toks: Box<dyn Iterator<Item = (usize, &'a str)> + 'a>,
+        toks: std::iter::Peekable<Box<dyn Iterator<Item = (usize, &'a str)> + 'a>>,
         last_line: usize,
         remaining_hint: usize,
     },
@@ -105,14 +105,17 @@ enum Body<'a> {
 }
 
 impl Body<'_> {
-    fn location(&self) -> Location {
+    /// Where the next value is (ASCII: its line; at the end of the data: the last line).
+    fn location(&mut self) -> Location {
         match self {
-            Body::Ascii { last_line, .. } => Location::Line(*last_line),
+            Body::Ascii {
+                toks, last_line, ..
+            } => Location::Line(toks.peek().map_or(*last_line, |t| t.0)),
             Body::Binary { pos, .. } => Location::Byte(*pos),
         }
     }
 
-    fn err(&self, msg: impl Into<String>) -> Error {
+    fn err(&mut self, msg: impl Into<String>) -> Error {
         Error::parse(F, Some(self.location()), msg)
     }
 
@@ -346,10 +349,12 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                 )
             })?;
             let first = h.lines;
-            Body::Ascii {
-                toks: Box::new(text.lines().enumerate().flat_map(move |(i, l)| {
+            let toks: Box<dyn Iterator<Item = (usize, &str)>> =
+                Box::new(text.lines().enumerate().flat_map(move |(i, l)| {
                     l.split_ascii_whitespace().map(move |t| (first + i + 1, t))
-                })),
+                }));
+            Body::Ascii {
+                toks: toks.peekable(),
                 last_line: first,
                 // Every token takes at least one byte plus a separator.
                 remaining_hint: data.len() / 2 + 1,
