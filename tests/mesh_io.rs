@@ -1067,3 +1067,54 @@ proptest! {
         let _ = read_mesh(&b, None, &ReadLimits::default());
     }
 }
+
+#[test]
+fn gltf_scene_selection() {
+    let tri = [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let nodes = serde_json::json!([
+        {"mesh": 0, "translation": [10.0, 0.0, 0.0]},
+        {"mesh": 0, "translation": [20.0, 0.0, 0.0], "children": [2]},
+        {"mesh": 0, "translation": [0.0, 1.0, 0.0]}
+    ]);
+    let base = gltf_doc(&tri, None, None, 4, nodes, serde_json::json!([0]));
+    let mut v: serde_json::Value = serde_json::from_slice(&base).unwrap();
+    // Default scene 1 of two.
+    v["scenes"] = serde_json::json!([{"nodes": [0]}, {"nodes": [1]}]);
+    v["scene"] = 1.into();
+    let m = read(&serde_json::to_vec(&v).unwrap(), None).unwrap();
+    let xs: Vec<f64> = m.vertices.iter().step_by(3).map(|p| p[0]).collect();
+    assert_eq!(xs, vec![20.0, 20.0]);
+    assert_eq!(
+        m.vertices[3],
+        [20.0, 1.0, 0.0],
+        "child composed with its parent"
+    );
+    // No default scene: scene 0.
+    v.as_object_mut().unwrap().remove("scene");
+    let m = read(&serde_json::to_vec(&v).unwrap(), None).unwrap();
+    assert_eq!(m.vertices[0], [10.0, 0.0, 0.0]);
+    assert_eq!(m.faces.len(), 1);
+    // No scenes at all: every root node (0 and 1, with 1's child 2).
+    v.as_object_mut().unwrap().remove("scenes");
+    let m = read(&serde_json::to_vec(&v).unwrap(), None).unwrap();
+    assert_eq!(m.faces.len(), 3);
+}
+
+#[test]
+fn gltf_node_cycle_is_an_error_not_a_hang() {
+    let tri = [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let nodes = serde_json::json!([{"mesh": 0, "children": [1]}, {"children": [0]}]);
+    let doc = gltf_doc(&tri, None, None, 4, nodes, serde_json::json!([0]));
+    let e = read(&doc, None).unwrap_err();
+    assert_eq!(e.code(), "mesh.parse", "{e}");
+    assert!(e.to_string().contains("cycle"), "{e}");
+}
+
+#[test]
+fn truncated_binary_stl_starting_with_solid_reports_truncation() {
+    let mut bin = to_bytes(|w| write_stl(&icosphere(0), StlEncoding::Binary, w));
+    bin[..5].copy_from_slice(b"solid");
+    let e = read(&bin[..bin.len() - 10], Some(Format::Stl)).unwrap_err();
+    assert_parse(&e, "STL", None, true);
+    assert!(e.to_string().contains("truncated"), "{e}");
+}

@@ -240,7 +240,7 @@ fn gltf_parts(mesh: &Mesh, uri: Option<String>, buffer_len: usize) -> Result<ser
         "min": min, "max": max
     })];
     let mut views = vec![
-        serde_json::json!({ "buffer": 0, "byteOffset": 0, "byteLength": pos_len.max(0), "target": 34962 }),
+        serde_json::json!({ "buffer": 0, "byteOffset": 0, "byteLength": pos_len, "target": 34962 }),
     ];
     if !mesh.faces.is_empty() {
         primitive["indices"] = 1.into();

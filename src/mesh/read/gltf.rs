@@ -409,3 +409,87 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
     }
     Ok(Mesh::new(vertices, faces))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn chunk(ty: &[u8; 4], data: &[u8]) -> Vec<u8> {
+        let mut c = (data.len() as u32).to_le_bytes().to_vec();
+        c.extend_from_slice(ty);
+        c.extend_from_slice(data);
+        c
+    }
+
+    fn glb(chunks: &[Vec<u8>]) -> Vec<u8> {
+        let body: Vec<u8> = chunks.concat();
+        let mut g = b"glTF".to_vec();
+        g.extend(2u32.to_le_bytes());
+        g.extend(((12 + body.len()) as u32).to_le_bytes());
+        g.extend(body);
+        g
+    }
+
+    #[test]
+    fn glb_chunks_unknown_ones_skipped() {
+        let g = glb(&[
+            chunk(b"JSON", b"{}  "),
+            chunk(b"BIN\0", &[1, 2, 3, 4]),
+            chunk(b"XTRA", &[9; 8]),
+        ]);
+        let (json, bin) = split_glb(&g).unwrap();
+        assert_eq!(json, b"{}  ");
+        assert_eq!(bin, Some(&[1u8, 2, 3, 4][..]));
+    }
+
+    #[test]
+    fn glb_chunk_errors_have_offsets() {
+        let g = glb(&[chunk(b"BIN\0", &[0; 4])]);
+        assert!(matches!(
+            split_glb(&g),
+            Err(Error::Parse {
+                location: Some(Location::Byte(12)),
+                ..
+            })
+        ));
+        let g = glb(&[chunk(b"JSON", b"{}  "), chunk(b"JSON", b"{}  ")]);
+        assert!(matches!(
+            split_glb(&g),
+            Err(Error::Parse {
+                location: Some(Location::Byte(24)),
+                ..
+            })
+        ));
+        let mut g = glb(&[chunk(b"JSON", b"{}  ")]);
+        g.extend([0, 0, 0]); // dangling partial chunk header
+        let n = g.len() as u32;
+        g[8..12].copy_from_slice(&n.to_le_bytes());
+        assert!(matches!(
+            split_glb(&g),
+            Err(Error::Parse {
+                location: Some(Location::Byte(24)),
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn matrices_compose_column_major() {
+        let t: Mat = [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [1.0, 2.0, 3.0, 1.0],
+        ];
+        let s: Mat = [
+            [2.0, 0.0, 0.0, 0.0],
+            [0.0, 2.0, 0.0, 0.0],
+            [0.0, 0.0, 2.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        // Scale first, then translate.
+        assert_eq!(apply(&mul(&t, &s), [1.0, 1.0, 1.0]), [3.0, 4.0, 5.0]);
+        assert_eq!(apply(&mul(&s, &t), [1.0, 1.0, 1.0]), [4.0, 6.0, 8.0]);
+        assert!(det3(&s) > 0.0);
+    }
+}

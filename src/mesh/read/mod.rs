@@ -85,8 +85,9 @@ impl Format {
         }
     }
 
-    /// Recognises a MIME type (case-insensitive, parameters such as `; charset=...` ignored):
-    /// `model/obj`, `text/plain` is *not* accepted. Returns `None` when unknown.
+    /// Recognises a MIME type (case-insensitive, parameters such as `; charset=...` ignored),
+    /// e.g. `model/obj`, `model/gltf+json`, `model/gltf-binary`, `model/stl`, `application/sla`,
+    /// `application/ply`. Generic types (`text/plain`, `application/octet-stream`) give `None`.
     pub fn from_mime(mime: &str) -> Option<Format> {
         let essence = mime
             .split(';')
@@ -314,7 +315,7 @@ fn trim_start_ascii(b: &[u8]) -> &[u8] {
     &b[start..]
 }
 
-fn contains(hay: &[u8], needle: &[u8]) -> bool {
+pub(crate) fn contains(hay: &[u8], needle: &[u8]) -> bool {
     hay.windows(needle.len()).any(|w| w == needle)
 }
 

@@ -452,7 +452,8 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                         return Err(line_err(el.line, "face indices must be integers"));
                     }
                 }
-                polys.reserve(el.count);
+                // Grows with the data actually read (the count is only an upper bound).
+                polys.reserve(el.count.min(1 << 16));
                 for _ in 0..el.count {
                     for (k, prop) in el.props.iter().enumerate() {
                         match prop {

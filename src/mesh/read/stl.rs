@@ -60,7 +60,12 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
     let starts_solid = trimmed.len() >= 5 && trimmed[..5].eq_ignore_ascii_case(b"solid");
     // A binary header may also begin with "solid": the exact binary size decides (an ASCII file
     // cannot match it in practice: its bytes 80..84 are text, i.e. a count above 5e8).
-    let ascii = starts_solid && !binary_size_matches(bytes);
+    // A binary file cut short may also begin with "solid": it is read as ASCII only if it is
+    // text (or at least mentions a facet), so truncation is reported as such.
+    let ascii = starts_solid
+        && !binary_size_matches(bytes)
+        && (std::str::from_utf8(bytes).is_ok()
+            || super::contains(&bytes[..bytes.len().min(4096)], b"facet"));
     let mut w = Welder {
         map: HashMap::new(),
         vertices: Vec::new(),

@@ -42,7 +42,7 @@ pub fn triangulate(poly: &[u32], vertices: &[[f64; 3]], out: &mut Vec<[u32; 3]>)
         nrm[2] += (a[0] - b[0]) * (a[1] + b[1]);
     }
     let len = dot(nrm, nrm).sqrt();
-    if !(len > 0.0) || !len.is_finite() {
+    if len.is_nan() || len <= 0.0 || !len.is_finite() {
         // Degenerate (collinear / non-finite) polygon: nothing better than a fan.
         fan(poly, out);
         return;
