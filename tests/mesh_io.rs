@@ -1028,7 +1028,11 @@ fn mutation() -> impl Strategy<Value = Mutation> {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
+    // 96 cases per property keep CI fast; set MESH_IO_FUZZ_CASES for a longer local run.
+    #![proptest_config(ProptestConfig {
+        cases: std::env::var("MESH_IO_FUZZ_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(96),
+        ..ProptestConfig::default()
+    })]
 
     /// Mutated valid files of every format and encoding: any result but a panic, and any mesh
     /// returned is well-formed.
@@ -1117,4 +1121,29 @@ fn truncated_binary_stl_starting_with_solid_reports_truncation() {
     let e = read(&bin[..bin.len() - 10], Some(Format::Stl)).unwrap_err();
     assert_parse(&e, "STL", None, true);
     assert!(e.to_string().contains("truncated"), "{e}");
+}
+
+/// Regression (found by the fuzz test): gltf-json's validator panicked on a POSITION accessor
+/// index out of range.
+#[test]
+fn gltf_position_accessor_out_of_range_is_an_error() {
+    let (nodes, scene) = one_node();
+    let mut v: serde_json::Value =
+        serde_json::from_slice(&gltf_doc(&quad(), None, None, 4, nodes, scene)).unwrap();
+    for bad in [
+        serde_json::json!({"POSITION": 7}),
+        serde_json::json!({"POSITION": 0, "NORMAL": 9}),
+    ] {
+        v["meshes"][0]["primitives"][0]["attributes"] = bad;
+        let e = read(&serde_json::to_vec(&v).unwrap(), None).unwrap_err();
+        assert_parse(&e, "glTF", None, false);
+    }
+    v["meshes"][0]["primitives"][0]["attributes"] = serde_json::json!({"POSITION": 0});
+    v["meshes"][0]["primitives"][0]["indices"] = 5.into();
+    assert_eq!(
+        read(&serde_json::to_vec(&v).unwrap(), None)
+            .unwrap_err()
+            .code(),
+        "mesh.parse"
+    );
 }

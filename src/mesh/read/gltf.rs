@@ -251,15 +251,47 @@ fn read_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>], bin: Option<&[u8]>) -
         .collect())
 }
 
+/// Deserializes and validates the glTF JSON.
+///
+/// gltf-json 1.4.1's validator indexes `root.accessors[...]` with the `POSITION` attribute before
+/// checking that index (a panic on hostile input, found by the fuzz test), so attribute indices
+/// are checked here first; the validator itself then checks every other reference.
+fn parse_document(json: &[u8]) -> Result<gltf::Document> {
+    let root: gltf::json::Root = gltf::json::deserialize::from_slice(json)
+        .map_err(|e| perr(format!("invalid glTF JSON: {e}")))?;
+    let n_acc = root.accessors.len();
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            let targets = prim
+                .targets
+                .iter()
+                .flatten()
+                .flat_map(|t| [t.positions, t.normals, t.tangents].into_iter().flatten());
+            let bad = prim
+                .attributes
+                .values()
+                .copied()
+                .chain(prim.indices)
+                .chain(targets)
+                .find(|i| i.value() >= n_acc);
+            if let Some(i) = bad {
+                return Err(perr(format!(
+                    "mesh {m} primitive {p}: accessor {} does not exist ({n_acc} accessors)",
+                    i.value()
+                )));
+            }
+        }
+    }
+    gltf::Document::from_json(root).map_err(|e| perr(format!("invalid glTF document: {e}")))
+}
+
 pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
     let (json, bin) = if bytes.starts_with(b"glTF") {
         split_glb(bytes)?
     } else {
         (bytes, None)
     };
-    let doc = gltf::Gltf::from_slice(json)
-        .map_err(|e| perr(format!("invalid glTF JSON: {e}")))?
-        .document;
+    let doc = parse_document(json)?;
 
     // Resolve the buffers (BIN chunk or embedded data URI; anything else is refused).
     let mut buffers: Vec<Vec<u8>> = Vec::new();
