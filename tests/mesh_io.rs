@@ -1147,3 +1147,29 @@ fn gltf_position_accessor_out_of_range_is_an_error() {
         "mesh.parse"
     );
 }
+
+/// The shared benchmark meshes, when present on this machine: every file reads with the vertex
+/// and face counts of `stats.csv`. Skipped (visibly) elsewhere; never a committed data file.
+#[test]
+fn shared_bench_meshes_if_present() {
+    let dir = std::path::Path::new("/work/shared/bench/dev");
+    let Ok(stats) = std::fs::read_to_string(dir.join("stats.csv")) else {
+        eprintln!("SKIPPED shared_bench_meshes_if_present: {} not found", dir.display());
+        return;
+    };
+    let start = std::time::Instant::now();
+    let mut n = 0;
+    for line in stats.lines().skip(1) {
+        let cols: Vec<&str> = line.splitn(4, ',').collect();
+        let (Some(id), Some(nv), Some(nf)) = (cols.first(), cols.get(1), cols.get(2)) else { continue };
+        let path = dir.join("meshes").join(format!("{id}.obj"));
+        if !path.exists() {
+            continue;
+        }
+        let m = read_path(&path, &limits()).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        assert_eq!(m.vertices.len().to_string(), *nv, "{id}");
+        assert_eq!(m.faces.len().to_string(), *nf, "{id}");
+        n += 1;
+    }
+    eprintln!("read {n} shared meshes in {:?}", start.elapsed());
+}
