@@ -1154,14 +1154,19 @@ fn gltf_position_accessor_out_of_range_is_an_error() {
 fn shared_bench_meshes_if_present() {
     let dir = std::path::Path::new("/work/shared/bench/dev");
     let Ok(stats) = std::fs::read_to_string(dir.join("stats.csv")) else {
-        eprintln!("SKIPPED shared_bench_meshes_if_present: {} not found", dir.display());
+        eprintln!(
+            "SKIPPED shared_bench_meshes_if_present: {} not found",
+            dir.display()
+        );
         return;
     };
     let start = std::time::Instant::now();
     let mut n = 0;
     for line in stats.lines().skip(1) {
         let cols: Vec<&str> = line.splitn(4, ',').collect();
-        let (Some(id), Some(nv), Some(nf)) = (cols.first(), cols.get(1), cols.get(2)) else { continue };
+        let (Some(id), Some(nv), Some(nf)) = (cols.first(), cols.get(1), cols.get(2)) else {
+            continue;
+        };
         let path = dir.join("meshes").join(format!("{id}.obj"));
         if !path.exists() {
             continue;

@@ -10,7 +10,11 @@
 use crate::mesh::{cross, dot, sub};
 
 /// Polygons with more corners than this are fan-triangulated (see the module docs).
-pub const MAX_EAR_CLIP: usize = 512;
+///
+/// Bounds hostile input: ear clipping costs at most ~n³/6 orientation tests for an n-gon, i.e.
+/// ~4·10⁴ at n = 64, and the face limit bounds the number of such polygons (4 000 000 triangles
+/// allow ~65 000 64-gons, a few seconds at worst). Real meshes rarely have larger concave faces.
+pub const MAX_EAR_CLIP: usize = 64;
 
 /// Triangulates the polygon `poly` (indices into `vertices`, all already checked in range) and
 /// appends the triangles to `out`. Polygons with fewer than 3 corners produce nothing; a polygon
@@ -194,5 +198,49 @@ mod tests {
         assert_eq!(out.len(), 3);
         triangulate(&[0, 1], &v, &mut out);
         assert_eq!(out.len(), 3);
+    }
+}
+
+#[cfg(test)]
+mod comb_tests {
+    use super::*;
+
+    /// A comb (many reflex corners) at the size limit: correct and fast.
+    #[test]
+    fn comb_polygon_at_the_limit() {
+        let teeth = (MAX_EAR_CLIP - 2) / 4; // 4 corners per tooth + 2 base corners
+        let mut v = Vec::new();
+        for t in 0..teeth {
+            let x = 2.0 * t as f64;
+            v.extend([
+                [x, 0.0, 0.0],
+                [x + 1.0, 0.0, 0.0],
+                [x + 1.0, 5.0, 0.0],
+                [x + 2.0, 5.0, 0.0],
+            ]);
+        }
+        // Top-right back down and the base.
+        let w = 2.0 * teeth as f64;
+        v.push([w, -1.0, 0.0]);
+        v.push([0.0, -1.0, 0.0]);
+        // Make it a simple polygon: teeth go up from y=0 to y=5, the base spans y=-1..0.
+        let poly: Vec<u32> = (0..v.len() as u32).rev().collect();
+        let mut area = 0.0;
+        for i in 0..v.len() {
+            let (a, b) = (v[i], v[(i + 1) % v.len()]);
+            area += a[0] * b[1] - b[0] * a[1];
+        }
+        let area = area.abs() / 2.0;
+        let start = std::time::Instant::now();
+        let mut out = Vec::new();
+        triangulate(&poly, &v, &mut out);
+        assert!(start.elapsed().as_millis() < 100);
+        assert_eq!(out.len(), v.len() - 2);
+        let m = crate::mesh::Mesh::new(v, out);
+        assert!(
+            (m.area() - area).abs() < 1e-9 * area,
+            "{} vs {area}",
+            m.area()
+        );
     }
 }
