@@ -1034,41 +1034,44 @@ proptest! {
         ..ProptestConfig::default()
     })]
 
-    /// Mutated valid files of every format and encoding: any result but a panic, and any mesh
-    /// returned is well-formed.
+    /// Mutated valid files: every case mutates each seed (every format and encoding) the same
+    /// way, so each format gets all the cases. Any result but a panic; any mesh returned is
+    /// well-formed and within the limits.
     #[test]
-    fn mutated_files_never_panic(seed in 0usize..10, muts in prop::collection::vec(mutation(), 1..6)) {
-        let all = seeds();
-        let (format, mut bytes) = all[seed % all.len()].clone();
-        for m in &muts {
-            apply(&mut bytes, m);
-        }
+    fn mutated_files_never_panic(muts in prop::collection::vec(mutation(), 1..6)) {
         let lim = ReadLimits { max_bytes: 1 << 20, max_vertices: 10_000, max_faces: 20_000 };
-        for hint in [Some(format), None] {
-            if let Ok(mesh) = read_mesh(&bytes, hint, &lim) {
-                let n = mesh.vertices.len();
-                prop_assert!(mesh.faces.iter().all(|f| f.iter().all(|&i| (i as usize) < n)));
-                prop_assert!(n <= 10_000 && mesh.faces.len() <= 20_000);
+        for (format, seed) in seeds() {
+            let mut bytes = seed;
+            for m in &muts {
+                apply(&mut bytes, m);
+            }
+            for hint in [Some(format), None] {
+                if let Ok(mesh) = read_mesh(&bytes, hint, &lim) {
+                    let n = mesh.vertices.len();
+                    prop_assert!(mesh.faces.iter().all(|f| f.iter().all(|&i| (i as usize) < n)));
+                    prop_assert!(n <= 10_000 && mesh.faces.len() <= 20_000);
+                }
             }
         }
     }
 
     /// Random bytes with every hint, and random bytes behind every magic prefix.
     #[test]
-    fn random_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..512), f in 0usize..6) {
-        let format = Format::ALL[f];
-        let _ = read_mesh(&bytes, Some(format), &ReadLimits::default());
-        let prefix: &[u8] = match format {
-            Format::Obj => b"v 0 0 0\n",
-            Format::Gltf => b"{\"asset\":",
-            Format::Glb => b"glTF\x02\x00\x00\x00",
-            Format::Ply => b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar uint vertex_indices\nend_header\n",
-            Format::Off => b"OFF\n",
-            Format::Stl => b"solid x\nfacet ",
-        };
-        let mut b = prefix.to_vec();
-        b.extend(&bytes);
-        let _ = read_mesh(&b, None, &ReadLimits::default());
+    fn random_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..512)) {
+        for format in Format::ALL {
+            let _ = read_mesh(&bytes, Some(format), &ReadLimits::default());
+            let prefix: &[u8] = match format {
+                Format::Obj => b"v 0 0 0\n",
+                Format::Gltf => b"{\"asset\":",
+                Format::Glb => b"glTF\x02\x00\x00\x00",
+                Format::Ply => b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar uint vertex_indices\nend_header\n",
+                Format::Off => b"OFF\n",
+                Format::Stl => b"solid x\nfacet ",
+            };
+            let mut b = prefix.to_vec();
+            b.extend(&bytes);
+            let _ = read_mesh(&b, None, &ReadLimits::default());
+        }
     }
 }
 
@@ -1177,4 +1180,83 @@ fn shared_bench_meshes_if_present() {
         n += 1;
     }
     eprintln!("read {n} shared meshes in {:?}", start.elapsed());
+}
+
+/// Paths of the numeric fields of a glTF document that the reader's bound checks depend on.
+const GLTF_FIELDS: [&[&str]; 16] = [
+    &["accessors", "0", "count"],
+    &["accessors", "0", "byteOffset"],
+    &["accessors", "0", "bufferView"],
+    &["accessors", "0", "componentType"],
+    &["accessors", "1", "count"],
+    &["accessors", "1", "byteOffset"],
+    &["accessors", "1", "componentType"],
+    &["bufferViews", "0", "byteOffset"],
+    &["bufferViews", "0", "byteLength"],
+    &["bufferViews", "0", "byteStride"],
+    &["bufferViews", "1", "byteOffset"],
+    &["bufferViews", "1", "byteLength"],
+    &["buffers", "0", "byteLength"],
+    &["meshes", "0", "primitives", "0", "mode"],
+    &["meshes", "0", "primitives", "0", "indices"],
+    &["nodes", "0", "mesh"],
+];
+
+proptest! {
+    #![proptest_config(ProptestConfig {
+        cases: std::env::var("MESH_IO_FUZZ_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(96),
+        ..ProptestConfig::default()
+    })]
+
+    /// Structure-aware glTF fuzzing: valid JSON whose counts, offsets, strides, lengths, types
+    /// and references are replaced by hostile values, in `.gltf` and `.glb` form.
+    #[test]
+    fn gltf_with_hostile_numbers_never_panics(
+        edits in prop::collection::vec(
+            (0..GLTF_FIELDS.len(), prop_oneof![
+                Just(0u64), Just(1), Just(3), Just(4), Just(5), Just(6), Just(7), Just(12),
+                Just(5121), Just(5123), Just(5125), Just(5126),
+                Just(u32::MAX as u64), Just(u64::MAX / 2), 0u64..100,
+            ]),
+            1..4,
+        ),
+        glb in any::<bool>(),
+    ) {
+        let mesh = icosphere(0);
+        let bytes = to_bytes(|w| write_gltf(&mesh, w));
+        let mut v: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
+        for (field, value) in &edits {
+            let path = GLTF_FIELDS[*field];
+            let mut node = &mut v;
+            for key in &path[..path.len() - 1] {
+                node = match key.parse::<usize>() {
+                    Ok(i) => &mut node[i],
+                    Err(_) => &mut node[*key],
+                };
+            }
+            node[path[path.len() - 1]] = (*value).into();
+        }
+        let json = serde_json::to_vec(&v).unwrap();
+        let _ = read_mesh(&json, None, &ReadLimits::default());
+        if glb {
+            // Same document as GLB with the buffer moved into the BIN chunk.
+            let uri = v["buffers"][0]["uri"].as_str().unwrap_or("").to_string();
+            let payload = uri.split_once(',').map(|x| x.1).unwrap_or("");
+            let mut bin = base64::engine::general_purpose::STANDARD.decode(payload).unwrap_or_default();
+            v["buffers"][0].as_object_mut().unwrap().remove("uri");
+            let mut json = serde_json::to_vec(&v).unwrap();
+            while json.len() % 4 != 0 { json.push(b' '); }
+            while bin.len() % 4 != 0 { bin.push(0); }
+            let mut g = b"glTF".to_vec();
+            g.extend(2u32.to_le_bytes());
+            g.extend(((28 + json.len() + bin.len()) as u32).to_le_bytes());
+            g.extend((json.len() as u32).to_le_bytes());
+            g.extend(b"JSON");
+            g.extend(&json);
+            g.extend((bin.len() as u32).to_le_bytes());
+            g.extend(b"BIN\0");
+            g.extend(&bin);
+            let _ = read_mesh(&g, None, &ReadLimits::default());
+        }
+    }
 }
