@@ -10,6 +10,8 @@ pub mod error;
 pub mod laplace;
 pub mod mesh;
 pub mod pipeline;
+pub mod ranking;
+pub mod signature;
 pub mod spectrum;
 
 pub use error::{Error, Result};
