@@ -7,6 +7,7 @@
 
 pub mod eigen;
 pub mod error;
+pub mod eval;
 pub mod laplace;
 pub mod mesh;
 pub mod pipeline;
