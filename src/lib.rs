@@ -5,6 +5,7 @@
 //! lumped mass) → [`eigen`] (k smallest generalized eigenpairs) → [`spectrum::Spectrum`]. The core
 //! is pure synchronous Rust: no HTTP, no storage.
 
+pub mod baseline;
 pub mod eigen;
 pub mod error;
 pub mod eval;
