@@ -468,9 +468,17 @@ fn mini_bench_default_config_map_floor() {
     let ev = out.result("default").unwrap();
     let map = ev.group(ALL).unwrap().map.unwrap();
     println!("mini, default config: mAP All = {:.4}\n{}", map, out.markdown);
-    // Floor: see the comment in the report / commit; measured value MEASURED_MINI.
     assert!(map >= MINI_FLOOR, "mAP All {map} below the floor {MINI_FLOOR}");
 }
 
-/// Justification in `mini_bench_default_config_map_floor`.
-const MINI_FLOOR: f64 = 0.0;
+/// mAP floor (All) of the default configuration on bench/mini.
+///
+/// Measured (fw a14ce66, default = Heat-L2-nL1-Sum over t = 0.016, 0.04, 0.1, FPS quadrature):
+/// All = 0.9653 (null 0.994, isometry 0.997, topology 0.867, partiality 0.902, triangulation
+/// 0.983, noise 0.989, scale 0.994). The reference implementation's exact all-pairs figure for the
+/// same configuration is 0.9675 (`mini/reference-map.json`, `Heat-L2-nL1-Sum[t=0.016..0.1]`), and
+/// its single-scale t = 0.1 configuration gets 0.9389. A random ranking of this split (3 classes
+/// of 8, 7 relevant among 23) gives about 0.35. 0.92 leaves room for about two of the 24 queries
+/// to lose half their AP (legitimate changes of sampling or defaults) while any real defect
+/// (wrong eigenpairs, histograms, windows or ranking) falls far below it.
+const MINI_FLOOR: f64 = 0.92;
