@@ -340,6 +340,10 @@ impl Progress {
     }
 }
 
+/// Part of the analysis cache key besides the mesh bytes and the options: the crate version, so
+/// that a new release never reuses spectra computed by an older solver.
+const ANALYSIS_VERSION: &str = concat!("shapeseek ", env!("CARGO_PKG_VERSION"));
+
 /// The signatures of one shape (one per union specification), or why it failed.
 type ShapeResult = std::result::Result<Vec<Signature>, (String, String)>;
 
@@ -359,7 +363,7 @@ fn process_shape(
     let bytes = read_limited(path, limits).map_err(fail)?;
     add(&clock.read, t.elapsed());
     let content = hash_parts(&[&bytes]);
-    let akey = hash_parts(&[content.as_bytes(), opts_json]);
+    let akey = hash_parts(&[content.as_bytes(), opts_json, ANALYSIS_VERSION.as_bytes()]);
     let mut sigs: Vec<Option<Signature>> = Vec::with_capacity(specs.len());
     let t = Instant::now();
     for sk in spec_keys {
@@ -555,7 +559,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         let prep = &prepared[group_of[c]];
         let dist = distance_matrix(prep, &cfg.query);
         let eval = metrics::evaluate(&dist, n, &classes, &transforms, &strengths, &included);
-        results.push(ConfigResult { name: cfg.name.clone(), eval });
+        results.push(ConfigResult { name: cfg.name.clone(), eval, alias: alias_of(cfg) });
     }
     let ranking_s = t_rank.elapsed().as_secs_f64();
 
@@ -621,6 +625,18 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         cache::write_atomic(p, text.as_bytes())?;
     }
     Ok(EvalOutcome { manifest, results, failures, timings, cache: cache_counts, json: json_doc, markdown })
+}
+
+/// The name of a preset configuration that is the same method as `cfg` under another name
+/// (same query, same channel specifications and discretisation), for reference look-ups.
+fn alias_of(cfg: &Config) -> Option<String> {
+    let same = |a: &Config| {
+        a.name != cfg.name
+            && a.query == cfg.query
+            && a.signature.channels == cfg.signature.channels
+            && a.signature.quadrature == cfg.signature.quadrature
+    };
+    ranking::paper_configs().into_iter().find(same).map(|c| c.name)
 }
 
 /// All-pairs scores (row = query), NaN where a shape is missing; rows in parallel.

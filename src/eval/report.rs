@@ -15,6 +15,18 @@ pub struct ConfigResult {
     pub name: String,
     /// Metrics.
     pub eval: Evaluation,
+    /// The name under which a reference lists the same method, when it differs from `name`
+    /// (e.g. `default` is a paper configuration under another name).
+    pub alias: Option<String>,
+}
+
+impl ConfigResult {
+    /// The reference mAP of this configuration for `group` (by name, else by alias).
+    pub fn reference_map(&self, reference: &Reference, group: &str) -> Option<f64> {
+        reference
+            .get_map(&self.name, group)
+            .or_else(|| self.alias.as_deref().and_then(|a| reference.get_map(a, group)))
+    }
 }
 
 /// A mesh that could not be used.
@@ -360,21 +372,28 @@ pub fn summary_table(results: &[ConfigResult], reference: Option<&Reference>) ->
     for g in &groups {
         let _ = write!(s, " {} |", group_label(g));
     }
-    let _ = writeln!(s, " AUC All | EER All |{}", if reference.is_some() { " ref All |" } else { "" });
+    let _ = writeln!(s, " AUC All | EER All |{}", if reference.is_some() { " reference All |" } else { "" });
     let _ = write!(s, "|---|");
     for _ in 0..groups.len() + 2 + reference.is_some() as usize {
         s.push_str("---|");
     }
     s.push('\n');
     for r in results {
-        let _ = write!(s, "| {} |", r.name);
+        match &r.alias {
+            Some(a) => {
+                let _ = write!(s, "| {} (= `{a}`) |", r.name);
+            }
+            None => {
+                let _ = write!(s, "| {} |", r.name);
+            }
+        }
         for g in &groups {
             let _ = write!(s, " {} |", f(r.eval.group(g).and_then(|x| x.map)));
         }
         let all = r.eval.group(ALL);
         let _ = write!(s, " {} | {} |", f(all.and_then(|x| x.auc)), f(all.and_then(|x| x.eer)));
         if let Some(rf) = reference {
-            let _ = write!(s, " {} |", f(rf.get_map(&r.name, ALL)));
+            let _ = write!(s, " {} |", f(r.reference_map(rf, ALL)));
         }
         s.push('\n');
     }
@@ -416,7 +435,7 @@ pub fn reference_shaped_tables(results: &[ConfigResult], reference: Option<&Refe
             let _ = write!(s, "| {} |", group_label(g));
             for (_, r) in &cols {
                 let ours = f(r.eval.group(g).and_then(|x| x.map));
-                match reference.and_then(|rf| rf.get_map(&r.name, g)) {
+                match reference.and_then(|rf| r.reference_map(rf, g)) {
                     Some(v) => {
                         let _ = write!(s, " {ours} / {:.2} |", 100.0 * v);
                     }
