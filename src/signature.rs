@@ -312,7 +312,7 @@ impl Default for SignatureSpec {
             },
             lp_samples: 300,
             geodesic_sources: 200,
-            sketch_quantiles: 512,
+            sketch_quantiles: 1024,
         }
     }
 }
@@ -826,9 +826,21 @@ fn l2_pairs(
                 .collect()
         })
         .collect();
+    // d(x, y) ≤ |ψ_x| + |ψ_y| ≤ the two largest norms.
     let per_scale: Vec<f64> = sq
         .iter()
-        .map(|s| 2.0 * s.iter().fold(0.0f64, |a, &b| a.max(b)).sqrt())
+        .map(|s| {
+            let (mut a, mut b) = (0.0f64, 0.0f64);
+            for &v in s {
+                if v > a {
+                    b = a;
+                    a = v;
+                } else if v > b {
+                    b = v;
+                }
+            }
+            a.sqrt() + b.sqrt()
+        })
         .collect();
     let bound = mode_bound(mode, &per_scale);
     let ns = psi.len();
@@ -852,6 +864,21 @@ fn l2_pairs(
                 g
             })
             .collect();
+        if let (PairMode::Single, [g]) = (mode, gs.as_slice()) {
+            let sq = &sq[0];
+            for ii in 0..r {
+                let i = r0 + ii;
+                fine.add_zero(pw[i] * pw[i]);
+                let (si, wi) = (sq[i], 2.0 * pw[i]);
+                let col = &g.col_as_slice(ii)[ii + 1..];
+                let js = &sq[i + 1..];
+                let ws = &pw[i + 1..];
+                for ((gij, sj), wj) in col.iter().zip(js).zip(ws) {
+                    fine.add((si + sj - 2.0 * gij).max(0.0).sqrt(), wi * wj);
+                }
+            }
+            return;
+        }
         let mut d = vec![0.0; ns];
         for ii in 0..r {
             let i = r0 + ii;
@@ -951,9 +978,9 @@ fn lp_pairs(
 }
 
 /// Number of bins of the fine histogram a sketch is read from.
-pub(crate) const FINE_BINS: usize = 1 << 16;
+pub(crate) const FINE_BINS: usize = 1 << 15;
 
-/// A fine histogram on `[0, bound]` (65 536 bins) plus an atom at 0 and the exact extremes:
+/// A fine histogram on `[0, bound]` (32 768 bins) plus an atom at 0 and the exact extremes:
 /// the streaming accumulator from which quantile sketches are read.
 #[derive(Clone, Debug)]
 pub(crate) struct FineHistogram {
@@ -1450,3 +1477,7 @@ impl<'a> Reader<'a> {
         (0..n).map(|_| self.f64()).collect()
     }
 }
+
+#[cfg(test)]
+#[path = "signature_tests.rs"]
+mod tests;
