@@ -5,7 +5,8 @@
 use shapeseek::eval::cache::{unwrap_envelope, wrap_envelope, write_atomic};
 use shapeseek::eval::manifest::{Manifest, ManifestError};
 use shapeseek::eval::metrics::{
-    auc, average_precision, eer, evaluate, evaluate_query, pr_curve, rank, roc_curve, ALL, ALL_WO_SCALE,
+    auc, average_precision, eer, evaluate, evaluate_query, pr_curve, pr_on_grid, pr_precision_at, rank,
+    roc_curve, roc_on_grid, roc_tpr_at, ALL, ALL_WO_SCALE, CURVE_GRID,
 };
 use shapeseek::eval::report::Reference;
 use shapeseek::eval::{evaluate as run_eval, load_configs, union_specs, EvalArgs};
@@ -87,6 +88,17 @@ fn roc_auc_and_eer_by_hand() {
     let roc = roc_curve(&[(0.1, true), (0.1, false)]).unwrap();
     assert_eq!(roc, vec![(0.0, 0.0), (1.0, 1.0)]);
     assert!(close(auc(&roc), 0.5));
+    // The one-sweep grid versions agree with the pointwise definitions.
+    let roc = roc_curve(&[(0.1, true), (0.2, false), (0.2, true), (0.3, false), (0.5, true), (0.7, false)]).unwrap();
+    let pr = pr_curve(&[true, false, true, false, true, false]);
+    let (rg, pg) = (roc_on_grid(&roc), pr_on_grid(&pr));
+    for i in 0..CURVE_GRID {
+        let x = i as f64 / (CURVE_GRID - 1) as f64;
+        assert!(close(rg[i], roc_tpr_at(&roc, x)), "roc at {x}");
+        assert!(close(pg[i], pr_precision_at(&pr, x)), "pr at {x}");
+    }
+    assert!(close(rg[0], 1.0 / 3.0) && close(rg[CURVE_GRID - 1], 1.0));
+    assert!(close(pg[0], 1.0) && close(pg[CURVE_GRID - 1], 0.6));
     // One class only: no ROC.
     assert!(roc_curve(&[(0.1, true)]).is_none());
 }
@@ -303,6 +315,15 @@ fn configs_presets_files_and_unions() {
         }
         assert_eq!(specs[g].quadrature, c.signature.quadrature);
     }
+    // A renamed copy of a preset is recognised as that method (for reference look-ups), and a
+    // changed query is not.
+    let base = all.iter().find(|c| c.name == "Heat-L2-nL1-Single[t=0.1]").expect("preset present");
+    let mut renamed = base.clone();
+    renamed.name = "renamed".into();
+    let alias = shapeseek::eval::alias_of(&renamed).expect("alias found");
+    assert_eq!(all.iter().find(|c| c.name == alias).unwrap().query, base.query);
+    renamed.query.channels = vec!["no-such-channel".into()];
+    assert_eq!(shapeseek::eval::alias_of(&renamed), None);
     for s in &specs {
         let mut names = s.channel_names();
         names.sort();

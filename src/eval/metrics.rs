@@ -155,6 +155,46 @@ pub struct QueryResult {
     pub roc: Option<Vec<(f64, f64)>>,
     /// PR points.
     pub pr: Vec<(f64, f64)>,
+    /// TPR on the FPR grid ([`CURVE_GRID`] points), as [`roc_tpr_at`].
+    pub roc_grid: Option<Vec<f64>>,
+    /// Interpolated precision on the recall grid, as [`pr_precision_at`].
+    pub pr_grid: Option<Vec<f64>>,
+}
+
+/// [`roc_tpr_at`] on the whole FPR grid in one sweep.
+pub fn roc_on_grid(roc: &[(f64, f64)]) -> Vec<f64> {
+    let mut k = 0;
+    grid()
+        .map(|f| {
+            while k + 1 < roc.len() && roc[k + 1].0 <= f {
+                k += 1;
+            }
+            let a = roc[k];
+            if a.0 == f || k + 1 >= roc.len() {
+                a.1
+            } else {
+                let b = roc[k + 1];
+                a.1 + (b.1 - a.1) * (f - a.0) / (b.0 - a.0)
+            }
+        })
+        .collect()
+}
+
+/// [`pr_precision_at`] on the whole recall grid in one sweep.
+pub fn pr_on_grid(pr: &[(f64, f64)]) -> Vec<f64> {
+    let mut suffix_max = vec![0.0f64; pr.len() + 1];
+    for i in (0..pr.len()).rev() {
+        suffix_max[i] = suffix_max[i + 1].max(pr[i].1);
+    }
+    let mut k = 0;
+    grid()
+        .map(|r| {
+            while k < pr.len() && pr[k].0 < r - 1e-12 {
+                k += 1;
+            }
+            suffix_max[k]
+        })
+        .collect()
 }
 
 /// Scores one query from its row of the distance matrix.
@@ -167,11 +207,15 @@ pub fn evaluate_query(
     let order = rank(distances, query, candidates);
     let rel: Vec<bool> = order.iter().map(|&j| classes[j] == classes[query]).collect();
     let pairs: Vec<(f64, bool)> = order.iter().zip(&rel).map(|(&j, &r)| (distances[j], r)).collect();
+    let roc = roc_curve(&pairs);
+    let pr = pr_curve(&rel);
     QueryResult {
         index: query,
         ap: average_precision(&rel),
-        roc: roc_curve(&pairs),
-        pr: pr_curve(&rel),
+        roc_grid: roc.as_deref().map(roc_on_grid),
+        pr_grid: (!pr.is_empty()).then(|| pr_on_grid(&pr)),
+        roc,
+        pr,
     }
 }
 
@@ -202,28 +246,26 @@ fn grid() -> impl Iterator<Item = f64> {
 }
 
 /// Summarises the queries `members` (indices into `results`); `pooled` holds, per query, its
-/// `(distance, relevant)` pairs for the pooled EER.
-pub fn summarize(results: &[QueryResult], members: &[usize], pooled: &[Vec<(f64, bool)>]) -> GroupSummary {
+/// `(distance, relevant)` pairs for the pooled EER. Mean curves only when `curves`.
+pub fn summarize(
+    results: &[QueryResult],
+    members: &[usize],
+    pooled: &[Vec<(f64, bool)>],
+    curves: bool,
+) -> GroupSummary {
     let aps: Vec<f64> = members.iter().filter_map(|&q| results[q].ap).collect();
-    let rocs: Vec<&Vec<(f64, f64)>> = members.iter().filter_map(|&q| results[q].roc.as_ref()).collect();
-    let prs: Vec<&Vec<(f64, f64)>> =
-        members.iter().map(|&q| &results[q].pr).filter(|p| !p.is_empty()).collect();
     let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
-    let aucs: Vec<f64> = rocs.iter().map(|r| auc(r)).collect();
+    let aucs: Vec<f64> = members.iter().filter_map(|&q| results[q].roc.as_deref().map(auc)).collect();
     let all_pairs: Vec<(f64, bool)> = members.iter().flat_map(|&q| pooled[q].iter().copied()).collect();
     let eer = roc_curve(&all_pairs).map(|r| eer(&r));
-    let mean_roc = if rocs.is_empty() {
-        Vec::new()
-    } else {
+    let mean_grid = |pick: &dyn Fn(&QueryResult) -> Option<&Vec<f64>>| -> Vec<(f64, f64)> {
+        let vs: Vec<&Vec<f64>> = members.iter().filter_map(|&q| pick(&results[q])).collect();
+        if !curves || vs.is_empty() {
+            return Vec::new();
+        }
         grid()
-            .map(|f| (f, rocs.iter().map(|r| roc_tpr_at(r, f)).sum::<f64>() / rocs.len() as f64))
-            .collect()
-    };
-    let mean_pr = if prs.is_empty() {
-        Vec::new()
-    } else {
-        grid()
-            .map(|r| (r, prs.iter().map(|p| pr_precision_at(p, r)).sum::<f64>() / prs.len() as f64))
+            .enumerate()
+            .map(|(i, x)| (x, vs.iter().map(|v| v[i]).sum::<f64>() / vs.len() as f64))
             .collect()
     };
     GroupSummary {
@@ -232,8 +274,8 @@ pub fn summarize(results: &[QueryResult], members: &[usize], pooled: &[Vec<(f64,
         map: mean(&aps),
         auc: mean(&aucs),
         eer,
-        mean_roc,
-        mean_pr,
+        mean_roc: mean_grid(&|r| r.roc_grid.as_ref()),
+        mean_pr: mean_grid(&|r| r.pr_grid.as_ref()),
     }
 }
 
@@ -248,7 +290,7 @@ pub const ALL_WO_SCALE: &str = "All w/o scale";
 pub struct Evaluation {
     /// Group name → summary, groups in report order.
     pub groups: Vec<(String, GroupSummary)>,
-    /// `transform@strength` → summary.
+    /// `transform@strength` → summary (without mean curves).
     pub per_strength: BTreeMap<String, GroupSummary>,
     /// Per-query results (indexed like the manifest; queries that were not ranked are absent).
     pub queries: Vec<QueryResult>,
@@ -299,24 +341,31 @@ pub fn evaluate(
     let pos = |pred: &dyn Fn(usize) -> bool| -> Vec<usize> {
         queries.iter().enumerate().filter(|(_, &q)| pred(q)).map(|(p, _)| p).collect()
     };
-    let mut groups = Vec::new();
+    let mut specs: Vec<(String, Vec<usize>, bool)> = Vec::new();
     for t in &order {
-        groups.push((t.clone(), summarize(&results, &pos(&|q| &transforms[q] == t), &pooled)));
+        specs.push((t.clone(), pos(&|q| &transforms[q] == t), true));
     }
-    groups.push((ALL.to_string(), summarize(&results, &pos(&|_| true), &pooled)));
+    specs.push((ALL.to_string(), pos(&|_| true), true));
     if order.iter().any(|t| t == "scale") {
-        groups.push((
-            ALL_WO_SCALE.to_string(),
-            summarize(&results, &pos(&|q| transforms[q] != "scale"), &pooled),
-        ));
+        specs.push((ALL_WO_SCALE.to_string(), pos(&|q| transforms[q] != "scale"), true));
     }
-    let mut per_strength = BTreeMap::new();
+    let n_main = specs.len();
     let mut keys: Vec<String> = queries.iter().map(|&q| format!("{}@{}", transforms[q], strengths[q])).collect();
     keys.sort();
     keys.dedup();
     for k in keys {
         let members = pos(&|q| format!("{}@{}", transforms[q], strengths[q]) == k);
-        per_strength.insert(k, summarize(&results, &members, &pooled));
+        specs.push((k, members, false));
     }
+    let summaries: Vec<(String, GroupSummary)> = {
+        use rayon::prelude::*;
+        specs
+            .par_iter()
+            .map(|(name, members, curves)| (name.clone(), summarize(&results, members, &pooled, *curves)))
+            .collect()
+    };
+    let mut it = summaries.into_iter();
+    let groups: Vec<(String, GroupSummary)> = it.by_ref().take(n_main).collect();
+    let per_strength: BTreeMap<String, GroupSummary> = it.collect();
     Evaluation { groups, per_strength, queries: results }
 }

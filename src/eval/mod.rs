@@ -125,6 +125,13 @@ pub struct Timings {
     pub calibration_histograms_s: f64,
     /// Scoring and metrics of every configuration (wall).
     pub ranking_s: f64,
+    /// Of which: all-pairs dissimilarity matrices (wall).
+    pub scoring_s: f64,
+    /// Of which: rankings, AP, ROC, PR and their aggregation (wall).
+    pub metrics_s: f64,
+    /// Configurations scored pair by pair with `ranking::score` because the per-channel
+    /// matrices did not reproduce it (expected 0).
+    pub direct_fallbacks: usize,
     /// Reports (wall).
     pub report_s: f64,
     /// Whole run (wall).
@@ -555,12 +562,27 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     let transforms: Vec<String> = manifest.entries.iter().map(|e| e.transform.clone()).collect();
     let strengths: Vec<i64> = manifest.entries.iter().map(|e| e.strength).collect();
     let mut results = Vec::with_capacity(configs.len());
+    let mut channel_cache: Vec<ChannelMatrices> = (0..specs.len()).map(|_| ChannelMatrices::default()).collect();
+    let (mut scoring_s, mut metrics_s) = (0.0, 0.0);
+    let mut direct_fallbacks = 0usize;
     for (c, cfg) in configs.iter().enumerate() {
-        let prep = &prepared[group_of[c]];
-        let dist = distance_matrix(prep, &cfg.query);
+        let g = group_of[c];
+        let prep = &prepared[g];
+        let t = Instant::now();
+        let dist = match channel_cache[g].aggregate(prep, &cfg.query) {
+            Some(d) => d,
+            None => {
+                direct_fallbacks += 1;
+                distance_matrix(prep, &cfg.query)
+            }
+        };
+        scoring_s += t.elapsed().as_secs_f64();
+        let t = Instant::now();
         let eval = metrics::evaluate(&dist, n, &classes, &transforms, &strengths, &included);
+        metrics_s += t.elapsed().as_secs_f64();
         results.push(ConfigResult { name: cfg.name.clone(), eval, alias: alias_of(cfg) });
     }
+    drop(channel_cache);
     let ranking_s = t_rank.elapsed().as_secs_f64();
 
     // Reports.
@@ -588,6 +610,9 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         per_shape_wall_s,
         calibration_histograms_s,
         ranking_s,
+        scoring_s,
+        metrics_s,
+        direct_fallbacks,
         report_s: 0.0,
         total_s: 0.0,
         threads: rayon::current_num_threads(),
@@ -627,16 +652,107 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     Ok(EvalOutcome { manifest, results, failures, timings, cache: cache_counts, json: json_doc, markdown })
 }
 
-/// The name of a preset configuration that is the same method as `cfg` under another name
-/// (same query, same channel specifications and discretisation), for reference look-ups.
-fn alias_of(cfg: &Config) -> Option<String> {
-    let same = |a: &Config| {
-        a.name != cfg.name
-            && a.query == cfg.query
-            && a.signature.channels == cfg.signature.channels
-            && a.signature.quadrature == cfg.signature.quadrature
+/// The name of a preset configuration that is the same method as `cfg` under another name:
+/// same query, same specifications of the queried channels, same discretisation (other channels
+/// of a shared family specification do not matter). Used for reference look-ups.
+pub fn alias_of(cfg: &Config) -> Option<String> {
+    let method = |c: &Config| {
+        let chans: Vec<Option<&crate::signature::ChannelSpec>> = c
+            .query
+            .channels
+            .iter()
+            .map(|n| c.signature.channels.iter().find(|x| &x.name() == n))
+            .collect();
+        let mut base = c.signature.clone();
+        base.channels.clear();
+        (serde_json::to_value(&c.query).ok(), serde_json::to_value(&chans).ok(), serde_json::to_value(&base).ok())
     };
-    ranking::paper_configs().into_iter().find(same).map(|c| c.name)
+    let me = method(cfg);
+    ranking::paper_configs().into_iter().find(|c| c.name != cfg.name && method(c) == me).map(|c| c.name)
+}
+
+/// All-pairs per-channel dissimilarity matrices, computed once per (channel, dissimilarity) and
+/// shared by every configuration of a signature family: `Heat-L2-nL1-Single[t]`, `…-Sum`,
+/// `…-Sum2` and `…-Max` all reuse the same six matrices.
+///
+/// A configuration's matrix is then `aggregation.apply(per-channel values)` exactly as
+/// `ranking::score` combines `ranking::channel_dissimilarity`; that equivalence is checked on a
+/// sample of pairs against `ranking::score` itself, and a configuration where it does not hold
+/// bit for bit is scored pair by pair instead.
+#[derive(Default)]
+struct ChannelMatrices {
+    mats: std::collections::HashMap<(String, String), Vec<f64>>,
+}
+
+impl ChannelMatrices {
+    fn matrix(&mut self, prep: &[Option<Prepared>], name: &str, d: ranking::Dissimilarity) -> &Vec<f64> {
+        let key = (name.to_string(), format!("{d:?}"));
+        self.mats.entry(key).or_insert_with(|| {
+            let n = prep.len();
+            let mut m = vec![f64::NAN; n * n];
+            m.par_chunks_mut(n.max(1)).enumerate().for_each(|(i, row)| {
+                if let Some(pi) = &prep[i] {
+                    let a = pi.channel(name);
+                    for (j, x) in row.iter_mut().enumerate() {
+                        if i != j {
+                            if let Some(pj) = &prep[j] {
+                                *x = ranking::channel_dissimilarity(d, a, pj.channel(name));
+                            }
+                        }
+                    }
+                }
+            });
+            m
+        })
+    }
+
+    /// The configuration's all-pairs matrix, or `None` when the shortcut does not reproduce
+    /// `ranking::score`.
+    fn aggregate(&mut self, prep: &[Option<Prepared>], q: &QuerySpec) -> Option<Vec<f64>> {
+        let names: Vec<String> = match q.aggregation {
+            ranking::Aggregation::Single => q.channels.iter().take(1).cloned().collect(),
+            _ => q.channels.clone(),
+        };
+        if names.is_empty() {
+            return None;
+        }
+        for nm in &names {
+            self.matrix(prep, nm, q.dissimilarity);
+        }
+        let mats: Vec<&Vec<f64>> =
+            names.iter().map(|nm| &self.mats[&(nm.clone(), format!("{:?}", q.dissimilarity))]).collect();
+        let n = prep.len();
+        let mut out = vec![f64::NAN; n * n];
+        out.par_chunks_mut(n.max(1)).enumerate().for_each(|(i, row)| {
+            if prep[i].is_none() {
+                return;
+            }
+            for (j, x) in row.iter_mut().enumerate() {
+                if i != j && prep[j].is_some() {
+                    *x = q.aggregation.apply(mats.iter().map(|m| m[i * n + j]));
+                }
+            }
+        });
+        // Check against the library's own score on a deterministic sample of pairs.
+        let ok: Vec<usize> = (0..n).filter(|&i| prep[i].is_some()).collect();
+        let m = ok.len();
+        if m >= 2 {
+            for s in 0..64usize.min(m * (m - 1)) {
+                let i = ok[(s * 7919) % m];
+                let j = ok[(s * 104_729 + 13) % m];
+                if i == j {
+                    continue;
+                }
+                let (Some(a), Some(b)) = (&prep[i], &prep[j]) else { continue };
+                let direct = ranking::score(a, b, q);
+                let ours = out[i * n + j];
+                if !(direct == ours || (direct.is_nan() && ours.is_nan())) {
+                    return None;
+                }
+            }
+        }
+        Some(out)
+    }
 }
 
 /// All-pairs scores (row = query), NaN where a shape is missing; rows in parallel.
@@ -749,6 +865,8 @@ fn markdown_report(
         ("per-shape phase (wall)", t.per_shape_wall_s),
         ("calibration + histograms (wall)", t.calibration_histograms_s),
         ("ranking + metrics, all configurations (wall)", t.ranking_s),
+        ("  of which dissimilarity matrices", t.scoring_s),
+        ("  of which AP / ROC / PR", t.metrics_s),
         ("total (wall)", t.total_s),
     ] {
         let _ = writeln!(s, "| {name} | {v:.2} |");

@@ -379,7 +379,8 @@ pub fn summary_table(results: &[ConfigResult], reference: Option<&Reference>) ->
     }
     s.push('\n');
     for r in results {
-        match &r.alias {
+        let own_ref = reference.is_some_and(|rf| rf.get_map(&r.name, ALL).is_some());
+        match r.alias.as_ref().filter(|_| !own_ref) {
             Some(a) => {
                 let _ = write!(s, "| {} (= `{a}`) |", r.name);
             }
