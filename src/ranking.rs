@@ -823,3 +823,7 @@ pub fn default_config() -> Config {
 pub fn config_by_name(name: &str) -> Option<Config> {
     paper_configs().into_iter().find(|c| c.name == name)
 }
+
+#[cfg(test)]
+#[path = "ranking_tests.rs"]
+mod tests;
