@@ -1,6 +1,42 @@
 //! Corpus calibration, histograms, dissimilarities (eqs. 11–16) and scale aggregation (§3.2).
 //!
-//! (Skeleton: presets and docs are being filled in.)
+//! # From signatures to scores
+//!
+//! 1. [`calibrate`] pools the stored distributions of a corpus and picks, per channel, the
+//!    window `[0, P95]` (paper §5: 95th percentile of the distances over the whole corpus). Each
+//!    shape counts equally (the pooled CDF is the mean of the shapes' normalised CDFs, found by
+//!    bisection on the sketches). The result is a small [`Calibration`] with an `epoch`: the
+//!    index stores it, and recalibrating re-derives histograms without touching any eigenpair.
+//! 2. [`prepare_for_ranking`] derives, per channel, a 256-bin histogram on that window with a
+//!    Gaussian Parzen window of σ = 1 bin (= window/256), as REFERENCE.md's binned KDE: linear
+//!    binning of the mass to the bin centres (mass beyond the window dropped, mass below the
+//!    first / above the last centre to the end bin), convolution truncated at ±4σ with weights
+//!    summing to 1, mass pushed past either end dropped. From a [`QuantileSketch`] the mass per
+//!    bin is the exact integral of its piecewise-linear CDF over 16 sub-bins per bin, each placed
+//!    at its centre (derivation error in [`crate::signature`]'s docs: nL1 ≤ 0.0008 on a shape's
+//!    own window). A [`Prepared`] keeps the un-normalised density `f` (mass per unit distance),
+//!    the normalised bin probabilities `p = f̂ h` and their cumulative sums.
+//! 3. [`score`] compares two [`Prepared`] with a [`QuerySpec`]: a [`Dissimilarity`] per channel,
+//!    then a dissimilarity-stage [`Aggregation`] over the channels (single: the first channel
+//!    only; sum; sum of squares; max). Kernel-, distance- and distribution-stage aggregation
+//!    are channel kinds of the signature ([`crate::signature::ChannelKind`]).
+//!
+//! # Dissimilarities (§2.4)
+//!
+//! Integrals use the bin width `h`: `L1 = Σ|f−g| h`, `L2 = (Σ(f−g)² h)^{1/2}`,
+//! `L∞ = max|f−g|` on un-normalised densities; `nL1 = Σ|p−q|` (in [0, 2]),
+//! `nL2 = (Σ(p−q)²/h)^{1/2}` on normalised densities; symmetric KL
+//! `Σ (p−q)(ln(p+ε) − ln(q+ε))` with ε = [`KL_EPSILON`] = 10⁻¹²; Bhattacharyya
+//! `−ln max(Σ√(pq), 10⁻¹²)` (so at most ≈ 27.6); χ² `2Σ(p−q)²/(p+q)` with empty-empty bins
+//! contributing 0; EMD `Σ|P_b − Q_b| h` with `P, Q` the cumulative sums (eq. 16). All are finite
+//! on empty bins and empty histograms, zero on identical inputs and symmetric. ShapeDNA channels
+//! are vectors: L1 → `Σ|a−b|`, L∞ → `max|a−b|`, anything else → Euclidean.
+//!
+//! # Complexity
+//!
+//! Calibration: O(S · channels · log Q · 60) for S shapes. Preparing one shape:
+//! O(channels · 256 · 16 · log Q). One score: O(channels · 256); histograms are contiguous `f64`
+//! arrays, so scanning the corpus is a linear pass (parallelise over candidates).
 
 pub use crate::signature::Aggregation;
 use crate::signature::{
