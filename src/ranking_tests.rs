@@ -157,8 +157,6 @@ fn parzen_histogram_by_hand() {
         assert!(close(*x, e), "{m:?}");
     }
     // Smoothing with σ = 1 bin keeps interior mass and is symmetric.
-    let mut raw = vec![0.0; 21];
-    raw[10] = 1.0;
     let s = parzen_histogram([(10.5, 1.0)], 21.0, 21, 1.0);
     assert!(close(s.iter().sum::<f64>(), 1.0));
     for k in 1..=4 {

@@ -953,8 +953,8 @@ fn l2_pairs(
             let cols: Vec<&[f64]> = gs.iter().map(|g| g.col_as_slice(ii)).collect();
             for jj in (ii + 1)..(m - r0) {
                 let j = r0 + jj;
-                for s in 0..ns {
-                    d[s] = (sq[s][i] + sq[s][j] - 2.0 * cols[s][jj]).max(0.0).sqrt();
+                for ((ds, sqs), col) in d.iter_mut().zip(&sq).zip(&cols) {
+                    *ds = (sqs[i] + sqs[j] - 2.0 * col[jj]).max(0.0).sqrt();
                 }
                 combine(mode, &d, 2.0 * pw[i] * pw[j], fine);
             }
