@@ -32,6 +32,19 @@
 //! on empty bins and empty histograms, zero on identical inputs and symmetric. ShapeDNA channels
 //! are vectors: L1 → `Σ|a−b|`, L∞ → `max|a−b|`, anything else → Euclidean.
 //!
+//! # Agreement with REFERENCE.md (bench/mini, 24 shapes)
+//!
+//! `cargo test --release --test mini_bench -- --ignored --nocapture`: corpus windows within
+//! 0.1–1 % of the Python reference for the heat scales and CT, 2 % for Step (λ_c = 4π·10),
+//! +3 % for Geo (edge-graph Dijkstra vs heat method). mAP (All): Heat-L2-nL1-Single[t=0.1]
+//! 93.89 (reference 93.89), Heat-L2-nL1-Sum2[t=0.016..0.1] 96.90 (97.00), Heat-L2-nL1-Max 77.92
+//! (77.91), CT-L2-nL1 88.88 (89.12), ShapeDNA[50]-L2 88.59 (88.59), D2-nL1 85.95 (84.76),
+//! Geo-nL1 84.55 (72.29: farthest-point sources with Voronoi weights instead of 200 random
+//! ones), `default` 96.53.
+//!
+//! Scores from [`Prepared`] values of *different* calibrations are meaningless (bins differ);
+//! the caller keeps one epoch per scan.
+//!
 //! # Complexity
 //!
 //! Calibration: O(S · channels · log Q · 60) for S shapes. Preparing one shape:

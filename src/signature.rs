@@ -992,7 +992,7 @@ fn lp_pairs(
                     z.as_ref(),
                     psi.as_ref().transpose(),
                     1.0,
-                    Par::rayon(0),
+                    Par::Seq,
                 );
             }
             k
