@@ -648,6 +648,39 @@ const TABLE1: [Dissimilarity; 8] = [
     Dissimilarity::Emd,
 ];
 
+/// Scores `query` against every candidate (in parallel) and returns `(index, score)` sorted by
+/// increasing score, ties by index (the bench protocol's manifest order). Channel names are
+/// resolved once when the candidates share the query's channel layout (one calibration).
+pub fn rank(query: &Prepared, candidates: &[Prepared], q: &QuerySpec) -> Vec<(usize, f64)> {
+    use rayon::prelude::*;
+    let names: &[String] = match q.aggregation {
+        Aggregation::Single => &q.channels[..q.channels.len().min(1)],
+        _ => &q.channels,
+    };
+    let idx: Vec<Option<usize>> = names.iter().map(|n| query.channel_index(n)).collect();
+    let mut out: Vec<(usize, f64)> = candidates
+        .par_iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let s = if c.names == query.names && !names.is_empty() {
+                q.aggregation.apply(idx.iter().map(|&k| match k {
+                    Some(k) => channel_dissimilarity(
+                        q.dissimilarity,
+                        query.channels[k].as_ref(),
+                        c.channels[k].as_ref(),
+                    ),
+                    None => f64::INFINITY,
+                }))
+            } else {
+                score(query, c, q)
+            };
+            (i, s)
+        })
+        .collect();
+    out.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+    out
+}
+
 /// Every named configuration, named as in REFERENCE.md (`<Kernel>-<Norm>-<Dissimilarity>-
 /// <Aggregation>[params]`):
 ///

@@ -338,4 +338,10 @@ fn end_to_end_ranking() {
     assert!(close(d(0, 1), d(1, 0)));
     assert!(d(0, 1) < d(0, 2), "bent {} vs torus {}", d(0, 1), d(0, 2));
     assert!(d(1, 0) < d(1, 2));
+    // rank() agrees with score() and orders by score.
+    let r = rank(&prep[0], &prep, &cfg.query);
+    assert_eq!(r.iter().map(|x| x.0).collect::<Vec<_>>(), vec![0, 1, 2]);
+    for &(i, sc) in &r {
+        assert_eq!(sc, d(0, i));
+    }
 }

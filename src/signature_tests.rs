@@ -522,9 +522,20 @@ fn baselines_on_the_sphere() {
         ChannelSpec::d2(2000),
         ChannelSpec::geodesic(None),
         ChannelSpec::shape_dna(8),
+        ChannelSpec::geodesic(Some(0.2)),
     ]);
     let s = compute_signature(&a, &spec).expect("sig");
     let r = (1.0 / (4.0 * std::f64::consts::PI)).sqrt();
+    // Radius cap: only pairs closer than 0.2 remain; on the sphere their share of μ × μ is
+    // (1 − cos(0.2/r))/2 (up to the edge-graph excess).
+    let capped = sketch_of(&s, 3);
+    assert!(*capped.quantiles.last().expect("q") <= 0.2);
+    let share = capped.mass / sketch_of(&s, 1).mass;
+    let expected = (1.0 - (0.2 / r).cos()) / 2.0;
+    assert!(
+        share < expected && share > 0.7 * expected,
+        "capped share {share} vs {expected}"
+    );
     let d2 = quantiles(&s, 0);
     let q = d2.len() - 1;
     let mut d2_err = 0.0f64;
