@@ -35,7 +35,10 @@
 //! 3 000 vertices, k = 100, six heat-L2 scales, nL1 of the 256-bin Parzen histograms against
 //! binning the exact all-pairs `a_x a_y` distances directly): **≤ 0.008** on the shape's own
 //! 95th-percentile window (0.0056–0.0079 per scale), ≤ 0.008 on twice that window, ≤ 0.023 on
-//! half of it (worst at t = 0.016, whose distribution has a sharp peak). For comparison:
+//! half of it (worst at t = 0.016, whose distribution has a sharp peak). At **10 000 vertices**
+//! (bumpy torus 125 × 80, exact all pairs streamed, test `quadrature_error_10k`, ignored:
+//! one minute): **≤ 0.0082** on the own window (0.0064–0.0082 per scale), ≤ 0.0055 on twice it,
+//! 0.009–0.016 on half of it except 0.0285 at t = 0.016. For comparison at 3 000 vertices:
 //! 500 samples 0.014–0.018, 1 500 samples 0.003–0.004 (at 2.25× the time); representing a cell
 //! by its mean eigenmap row (`cell_means`) was not better (0.005–0.009). i.i.d. sampling of
 //! 1 000 points was measured by REFERENCE.md at ≈ 0.08 between two draws.
