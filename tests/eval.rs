@@ -454,10 +454,27 @@ fn end_to_end_on_generated_meshes_with_cache() {
     let ap2: Vec<Option<f64>> = second.result("default").unwrap().queries.iter().map(|q| q.ap).collect();
     assert_eq!(ap1, ap2);
 
+    // A configuration needing a subset of the cached channels reuses the cached signatures.
+    let mut sub = shapeseek::ranking::default_config();
+    sub.name = "first-scale".into();
+    sub.signature.channels.truncate(1);
+    sub.query.channels.truncate(1);
+    sub.query.aggregation = shapeseek::ranking::Aggregation::Single;
+    let cfg_path = tmp.path().join("sub.json");
+    std::fs::write(&cfg_path, serde_json::to_string(&sub).unwrap()).unwrap();
+    let mut sub_args = args.clone();
+    sub_args.config = Some(cfg_path.display().to_string());
+    sub_args.json = None;
+    sub_args.out = None;
+    let subset = run_eval(&sub_args).unwrap();
+    assert_eq!(subset.timings.signature_s, 0.0, "no signature recomputed");
+    assert_eq!(subset.timings.eigen_s, 0.0);
+    assert!(subset.result("first-scale").unwrap().group(ALL).unwrap().map.unwrap() > 0.5);
+
     // Corrupt every cache entry: recomputed, same figures.
     let mut corrupted = 0;
-    for sub in ["analysis", "signature"] {
-        for e in std::fs::read_dir(tmp.path().join("cache").join(sub)).unwrap() {
+    for dir in ["analysis", "signature", "index"] {
+        for e in std::fs::read_dir(tmp.path().join("cache").join(dir)).unwrap() {
             let p = e.unwrap().path();
             let mut b = std::fs::read(&p).unwrap();
             let mid = b.len() / 2;

@@ -4,7 +4,9 @@
 //! * `analysis/<h>.bin`, `h = sha256(mesh file bytes ‖ AnalyzeOptions as JSON)`: the prepared mesh,
 //!   prepare report, eigen statistics, timings and spectrum of one mesh file;
 //! * `signature/<h>.bin`, `h = sha256(analysis key ‖ SignatureSpec::key())`: the bytes of
-//!   `Signature::to_bytes`.
+//!   `Signature::to_bytes`;
+//! * `index/<analysis key>.bin`: which signature specifications are cached for that analysis
+//!   (JSON), so that a run needing a subset of the channels of a cached signature reuses it.
 //!
 //! Every file is `MAGIC ‖ payload ‖ sha256(payload)`; a file whose magic or checksum does not match
 //! (truncated, corrupt, older format) is treated as missing and recomputed. Writes go to a
@@ -25,6 +27,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 const MAGIC_ANALYSIS: &[u8; 8] = b"SSEVAN01";
 const MAGIC_SIGNATURE: &[u8; 8] = b"SSEVSG01";
+const MAGIC_INDEX: &[u8; 8] = b"SSEVIX01";
 
 /// Hex sha256 of the parts, each length-prefixed (so `("ab","c") ≠ ("a","bc")`).
 pub fn hash_parts(parts: &[&[u8]]) -> String {
@@ -75,6 +78,7 @@ impl Cache {
         if let Some(d) = &dir {
             std::fs::create_dir_all(d.join("analysis"))?;
             std::fs::create_dir_all(d.join("signature"))?;
+            std::fs::create_dir_all(d.join("index"))?;
         }
         Ok(Cache { dir, stats: CacheStats::default() })
     }
@@ -134,6 +138,17 @@ impl Cache {
     /// Stores signature bytes.
     pub fn store_signature(&self, key: &str, bytes: &[u8]) {
         self.store("signature", key, MAGIC_SIGNATURE, bytes);
+    }
+
+    /// The signature index of an analysis (not counted in the statistics).
+    pub fn load_index(&self, analysis_key: &str) -> Option<Vec<u8>> {
+        let bytes = std::fs::read(self.path("index", analysis_key)?).ok()?;
+        unwrap_envelope(&bytes, MAGIC_INDEX).map(|p| p.to_vec())
+    }
+
+    /// Stores the signature index of an analysis.
+    pub fn store_index(&self, analysis_key: &str, bytes: &[u8]) {
+        self.store("index", analysis_key, MAGIC_INDEX, bytes);
     }
 
     /// Counts a payload that passed the checksum but could not be decoded (treated as corrupt).

@@ -373,15 +373,17 @@ fn process_shape(
     let akey = hash_parts(&[content.as_bytes(), opts_json, ANALYSIS_VERSION.as_bytes()]);
     let mut sigs: Vec<Option<Signature>> = Vec::with_capacity(specs.len());
     let t = Instant::now();
-    for sk in spec_keys {
-        let key = hash_parts(&[akey.as_bytes(), sk.as_bytes()]);
-        let sig = cache.load_signature(&key).and_then(|b| match Signature::from_bytes(&b) {
-            Ok(s) if &s.spec_key == sk => Some(s),
-            _ => {
-                cache.note_undecodable();
-                None
-            }
-        });
+    let mut index: Option<Vec<IndexEntry>> = None;
+    for (spec, sk) in specs.iter().zip(spec_keys) {
+        let mut sig = load_signature_checked(cache, &akey, sk);
+        if sig.is_none() {
+            // A cached signature of a larger specification serves as well (channels by name).
+            let idx = index.get_or_insert_with(|| load_index(cache, &akey));
+            sig = idx
+                .iter()
+                .filter(|e| &e.key != sk && covers(&e.spec, spec))
+                .find_map(|e| load_signature_checked(cache, &akey, &e.key));
+        }
         sigs.push(sig);
     }
     add(&clock.cache, t.elapsed());
@@ -422,12 +424,54 @@ fn process_shape(
                 add(&clock.signature, t.elapsed());
                 let t = Instant::now();
                 cache.store_signature(&hash_parts(&[akey.as_bytes(), sk.as_bytes()]), &s.to_bytes());
+                if cache.dir().is_some() {
+                    let mut idx = index.take().unwrap_or_else(|| load_index(cache, &akey));
+                    if !idx.iter().any(|e| &e.key == sk) {
+                        idx.push(IndexEntry { key: sk.clone(), spec: spec.clone() });
+                    }
+                    cache.store_index(&akey, &serde_json::to_vec(&idx).expect("index serialises"));
+                    index = Some(idx);
+                }
                 add(&clock.cache, t.elapsed());
                 out.push(s);
             }
         }
     }
     Ok(out)
+}
+
+/// One cached signature specification of an analysis.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct IndexEntry {
+    key: String,
+    spec: SignatureSpec,
+}
+
+fn load_index(cache: &Cache, akey: &str) -> Vec<IndexEntry> {
+    cache.load_index(akey).and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default()
+}
+
+fn load_signature_checked(cache: &Cache, akey: &str, spec_key: &str) -> Option<Signature> {
+    let key = hash_parts(&[akey.as_bytes(), spec_key.as_bytes()]);
+    cache.load_signature(&key).and_then(|b| match Signature::from_bytes(&b) {
+        Ok(s) if s.spec_key == spec_key => Some(s),
+        _ => {
+            cache.note_undecodable();
+            None
+        }
+    })
+}
+
+/// Does a signature computed for `big` hold every channel of `small`, computed the same way?
+pub fn covers(big: &SignatureSpec, small: &SignatureSpec) -> bool {
+    let base = |s: &SignatureSpec| {
+        let mut b = s.clone();
+        b.channels.clear();
+        serde_json::to_value(&b).ok()
+    };
+    base(big).is_some()
+        && base(big) == base(small)
+        && small.channels.iter().all(|c| big.channels.iter().any(|x| x == c))
 }
 
 fn read_limited(path: &Path, limits: &ReadLimits) -> Result<Vec<u8>> {
