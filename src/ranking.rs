@@ -21,6 +21,25 @@
 //!    only; sum; sum of squares; max). Kernel-, distance- and distribution-stage aggregation
 //!    are channel kinds of the signature ([`crate::signature::ChannelKind`]).
 //!
+//! ```no_run
+//! use shapeseek::pipeline::{analyze, AnalyzeOptions};
+//! use shapeseek::ranking::{calibrate, default_config, prepare_for_ranking, rank};
+//! use shapeseek::signature::compute_signature;
+//! # fn main() -> shapeseek::Result<()> {
+//! # let meshes: Vec<shapeseek::mesh::Mesh> = Vec::new();
+//! let cfg = default_config();
+//! let sigs = meshes
+//!     .iter()
+//!     .map(|m| compute_signature(&analyze(m, &AnalyzeOptions::default())?, &cfg.signature))
+//!     .collect::<shapeseek::Result<Vec<_>>>()?;
+//! let cal = calibrate(&sigs.iter().collect::<Vec<_>>(), &cfg.signature, 1);
+//! let prepared: Vec<_> = sigs.iter().map(|s| prepare_for_ranking(s, &cal)).collect();
+//! let hits = rank(&prepared[0], &prepared, &cfg.query); // (index, score), best first
+//! # let _ = hits;
+//! # Ok(())
+//! # }
+//! ```
+//!
 //! # Dissimilarities (§2.4)
 //!
 //! Integrals use the bin width `h`: `L1 = Σ|f−g| h`, `L2 = (Σ(f−g)² h)^{1/2}`,
@@ -38,7 +57,7 @@
 //! 0.1–1 % of the Python reference for the heat scales and CT, 2 % for Step (λ_c = 4π·10),
 //! +3 % for Geo (edge-graph Dijkstra vs heat method). mAP (All): Heat-L2-nL1-Single[t=0.1]
 //! 93.89 (reference 93.89), Heat-L2-nL1-Sum2[t=0.016..0.1] 96.90 (97.00), Heat-L2-nL1-Max 77.92
-//! (77.91), CT-L2-nL1 88.88 (89.12), ShapeDNA[50]-L2 88.59 (88.59), D2-nL1 85.95 (84.76),
+//! (77.91), CT-L2-nL1 88.88 (89.12), `ShapeDNA[50]-L2` 88.59 (88.59), D2-nL1 85.95 (84.76),
 //! Geo-nL1 84.55 (72.29: farthest-point sources with Voronoi weights instead of 200 random
 //! ones), `default` 96.53.
 //!
