@@ -138,7 +138,7 @@ fn run_single(case: &str, export: Option<&Path>) -> Result<()> {
         eigensolve_s: pairs.stats.iterate_ms / 1e3,
         total_s,
         peak_mib: peak_mib(),
-        max_residual: pairs.residuals.iter().cloned().fold(0.0, f64::max),
+        max_residual: shapeseek::eigen::max_or_nan(&pairs.residuals),
         restarts: pairs.stats.restarts,
         solves: pairs.stats.operator_applications,
         shift: pairs.stats.shift,

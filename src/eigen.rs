@@ -193,13 +193,20 @@ pub fn smallest_eigenpairs(
         out.vectors.as_ref(),
         lambda_ref,
     );
-    let worst = out.residuals.iter().cloned().fold(0.0, f64::max);
-    if !(worst <= MAX_ACCEPTED_RESIDUAL.max(opts.tolerance)) {
+    let worst = max_or_nan(&out.residuals);
+    if worst.is_nan() || worst > MAX_ACCEPTED_RESIDUAL.max(opts.tolerance) {
         return Err(Error::Numerical(format!(
             "eigenpair residual {worst:.3e} above the accepted bound"
         )));
     }
     Ok(out)
+}
+
+/// The largest value, or NaN if any is NaN (`f64::max` would hide it).
+pub fn max_or_nan(values: &[f64]) -> f64 {
+    values
+        .iter()
+        .fold(0.0, |a: f64, &b| if b.is_nan() || b > a { b } else { a })
 }
 
 /// Block size heuristic: large enough to hold typical multiplicities (a sphere's 2l+1) and to
@@ -481,7 +488,7 @@ fn small_cholesky_upper(g: &Mat<f64>) -> Option<Mat<f64>> {
         for k in 0..j {
             d -= r[(k, j)] * r[(k, j)];
         }
-        if !(d > 1e-20 * max_diag) || max_diag <= 0.0 {
+        if d.is_nan() || d <= 1e-20 * max_diag || max_diag <= 0.0 {
             return None;
         }
         let rjj = d.sqrt();
@@ -663,7 +670,7 @@ fn krylov_schur(
             let values: Vec<f64> = theta[..k].iter().map(|t| sigma + 1.0 / t).collect();
             // Ritz values are ordered by θ descending, i.e. λ ascending.
             let res = relative_residuals(stiffness, mass, &values, phi.as_ref(), lambda_ref);
-            let worst = res.iter().cloned().fold(0.0, f64::max);
+            let worst = max_or_nan(&res);
             let at_floor = inner_tol <= INNER_TOLERANCE_FLOOR;
             if worst <= opts.tolerance || (at_floor && worst <= MAX_ACCEPTED_RESIDUAL) {
                 return Ok(Eigenpairs {

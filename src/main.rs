@@ -152,7 +152,7 @@ fn run_spectrum(args: &SpectrumArgs) -> shapeseek::Result<()> {
     let a = analyze(&mesh, &opts)?;
     let total_ms = t0.elapsed().as_secs_f64() * 1e3;
     let s = &a.spectrum;
-    let max_residual = s.residuals.iter().cloned().fold(0.0, f64::max);
+    let max_residual = shapeseek::eigen::max_or_nan(&s.residuals);
     if args.json {
         let mut out = json!({
             "source": source,

@@ -240,3 +240,46 @@ fn disconnected_components_kept_give_one_zero_mode_each() {
         .count();
     assert_eq!(zeros, 2, "{:?}", r.spectrum.eigenvalues);
 }
+
+#[test]
+fn same_shape_in_every_format_gives_the_same_spectrum() {
+    use shapeseek::mesh::write::{write_ply, write_stl, PlyEncoding, StlEncoding};
+    use shapeseek::mesh::{read_mesh, write_mesh, Format, ReadLimits};
+    let mesh = generate::bumpy_sphere(3, 0.25);
+    let o = opts(30, Method::Krylov);
+    let reference = analyze(&mesh, &o).unwrap().spectrum.eigenvalues;
+    let mut files: Vec<(String, Vec<u8>, f64)> = Vec::new();
+    for format in Format::ALL {
+        let mut bytes = Vec::new();
+        write_mesh(&mesh, format, &mut bytes).unwrap();
+        // glTF and STL store f32 coordinates: the spectrum moves by about f32 epsilon.
+        let tol = if matches!(format, Format::Gltf | Format::Glb | Format::Stl) {
+            1e-5
+        } else {
+            1e-10
+        };
+        files.push((format.name().to_string(), bytes, tol));
+    }
+    for enc in [
+        PlyEncoding::Ascii,
+        PlyEncoding::BinaryLittleEndian,
+        PlyEncoding::BinaryBigEndian,
+    ] {
+        let mut bytes = Vec::new();
+        write_ply(&mesh, enc, &mut bytes).unwrap();
+        files.push((format!("ply {enc:?}"), bytes, 1e-10));
+    }
+    for enc in [StlEncoding::Ascii, StlEncoding::Binary] {
+        let mut bytes = Vec::new();
+        write_stl(&mesh, enc, &mut bytes).unwrap();
+        files.push((format!("stl {enc:?}"), bytes, 1e-5));
+    }
+    for (name, bytes, tol) in files {
+        // No hint: the format is recognised from the bytes.
+        let read = read_mesh(&bytes, None, &ReadLimits::default()).unwrap();
+        let ev = analyze(&read, &o).unwrap().spectrum.eigenvalues;
+        for (i, (a, b)) in reference.iter().zip(&ev).enumerate().skip(1) {
+            assert!((a - b).abs() <= tol * a, "{name}: λ{i} {a} vs {b}");
+        }
+    }
+}

@@ -279,7 +279,14 @@ pub fn prepare_with_map(
             }
             faces.truncate(k);
             // An empty f64 sum is -0.0: report a clean 0 when nothing was dropped.
-            (1, if dropped > 0.0 { dropped / total_area } else { 0.0 })
+            (
+                1,
+                if dropped > 0.0 {
+                    dropped / total_area
+                } else {
+                    0.0
+                },
+            )
         }
     };
     let component_faces_dropped =
