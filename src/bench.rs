@@ -214,9 +214,10 @@ fn run_all(b: &SpectrumBench) -> Result<()> {
     std::fs::create_dir_all(&tmp)?;
     std::fs::write(&script, SCIPY_SCRIPT)?;
     println!(
-        "{:>8} {:>4} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>7} {:>9} {:>9} {:>7} {:>9}",
+        "{:>8} {:>4} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>7} {:>9} {:>9} {:>7} {:>9}",
         "vertices",
         "k",
+        "prep s",
         "lapl s",
         "factor s",
         "eigen s",
