@@ -478,6 +478,38 @@ fn gemm_nn(w: MatMut<'_, f64>, accum: Accum, v: MatRef<'_, f64>, h: MatRef<'_, f
     );
 }
 
+/// One sweep over row chunks: `w ← w − V h`, then returns `Vᵀ w` (the tree reduction of
+/// [`gemm_tn`]), so the second Gram–Schmidt pass reads V once less.
+fn subtract_then_tn(v: MatRef<'_, f64>, w: MatMut<'_, f64>, h: MatRef<'_, f64>) -> Mat<f64> {
+    let n = w.nrows();
+    if n <= ROW_CHUNK {
+        let mut w = w;
+        matmul(w.rb_mut(), Accum::Add, v, h, -1.0, Par::Seq);
+        let mut out = Mat::<f64>::zeros(v.ncols(), w.ncols());
+        matmul(out.as_mut(), Accum::Replace, v.transpose(), w.rb(), 1.0, Par::Seq);
+        return out;
+    }
+    let half = (n / 2).div_ceil(ROW_CHUNK) * ROW_CHUNK;
+    let (top, bottom) = w.split_at_row_mut(half);
+    let (a, b) = rayon::join(
+        || subtract_then_tn(v.subrows(0, half), top, h),
+        || subtract_then_tn(v.subrows(half, n - half), bottom, h),
+    );
+    a + b
+}
+
+/// Classical Gram–Schmidt twice against the orthonormal `v` in three sweeps over V (memory
+/// traffic, not flops, bounds these tall-skinny products): returns the total coefficients.
+fn cgs2(v: MatRef<'_, f64>, mut w: MatMut<'_, f64>) -> Mat<f64> {
+    if v.ncols() == 0 {
+        return Mat::<f64>::zeros(0, w.ncols());
+    }
+    let h1 = gemm_tn(v, w.rb());
+    let h2 = subtract_then_tn(v, w.rb_mut(), h1.as_ref());
+    gemm_nn(w, Accum::Add, v, h2.as_ref(), -1.0);
+    h1 + h2
+}
+
 /// `w ← w − V (Vᵀ w)`, returning `Vᵀ w`.
 fn project_out(v: MatRef<'_, f64>, w: MatMut<'_, f64>) -> Mat<f64> {
     if v.ncols() == 0 {
@@ -555,9 +587,7 @@ fn orthonormalize(
     w: &mut Mat<f64>,
     rng: &mut SplitMix,
 ) -> (Mat<f64>, Mat<f64>, Mat<f64>) {
-    let h1 = project_out(v, w.as_mut());
-    let h2 = project_out(v, w.as_mut());
-    let h = h1 + h2;
+    let h = cgs2(v, w.as_mut());
     if let Some((q1, r1)) = cholqr(w.as_ref()) {
         if let Some((q2, r2)) = cholqr(q1.as_ref()) {
             let r = r2 * r1;
