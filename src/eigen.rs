@@ -486,7 +486,14 @@ fn subtract_then_tn(v: MatRef<'_, f64>, w: MatMut<'_, f64>, h: MatRef<'_, f64>) 
         let mut w = w;
         matmul(w.rb_mut(), Accum::Add, v, h, -1.0, Par::Seq);
         let mut out = Mat::<f64>::zeros(v.ncols(), w.ncols());
-        matmul(out.as_mut(), Accum::Replace, v.transpose(), w.rb(), 1.0, Par::Seq);
+        matmul(
+            out.as_mut(),
+            Accum::Replace,
+            v.transpose(),
+            w.rb(),
+            1.0,
+            Par::Seq,
+        );
         return out;
     }
     let half = (n / 2).div_ceil(ROW_CHUNK) * ROW_CHUNK;

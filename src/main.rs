@@ -3,6 +3,7 @@
 use clap::{Args, Parser, Subcommand};
 use serde_json::json;
 use shapeseek::eigen::{EigenOptions, Method};
+use shapeseek::laplace::LaplacianKind;
 use shapeseek::mesh::prepare::{ComponentPolicy, PrepareOptions};
 use shapeseek::mesh::{generate, read_mesh, Format, Mesh, ReadLimits};
 use shapeseek::pipeline::{analyze, AnalyzeOptions};
@@ -52,6 +53,9 @@ struct SpectrumArgs {
     /// Eigensolver: auto, dense or krylov.
     #[arg(long, default_value = "auto", value_parser = parse_method)]
     method: Method,
+    /// Operator: cotangent (the paper's) or intrinsic-delaunay (robust to bad triangulations).
+    #[arg(long, default_value = "cotangent", value_parser = parse_laplacian)]
+    laplacian: LaplacianKind,
     /// Keep every connected component (default: the largest by area).
     #[arg(long)]
     keep_all_components: bool,
@@ -68,6 +72,16 @@ struct SpectrumArgs {
     /// Also print every eigenpair's residual (JSON: `residuals`).
     #[arg(long)]
     residuals: bool,
+}
+
+fn parse_laplacian(s: &str) -> Result<LaplacianKind, String> {
+    match s {
+        "cotangent" => Ok(LaplacianKind::Cotangent),
+        "intrinsic-delaunay" => Ok(LaplacianKind::IntrinsicDelaunay),
+        _ => Err(format!(
+            "unknown Laplacian {s:?} (cotangent, intrinsic-delaunay)"
+        )),
+    }
 }
 
 fn parse_method(s: &str) -> Result<Method, String> {
@@ -148,6 +162,7 @@ fn run_spectrum(args: &SpectrumArgs) -> shapeseek::Result<()> {
             method: args.method,
             ..Default::default()
         },
+        laplacian: args.laplacian,
     };
     let a = analyze(&mesh, &opts)?;
     let total_ms = t0.elapsed().as_secs_f64() * 1e3;
