@@ -1,10 +1,24 @@
-//! `shapeseek` command line. (Minimal: only the `eval` subcommand is wired here so far.)
+//! The `shapeseek` command line: a thin shell around the library.
 
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
+use serde_json::json;
+use shapeseek::eigen::{EigenOptions, Method};
+use shapeseek::laplace::LaplacianKind;
+use shapeseek::mesh::prepare::{ComponentPolicy, PrepareOptions};
+use shapeseek::mesh::{generate, read_mesh, Format, Mesh, ReadLimits};
+use shapeseek::pipeline::{analyze, AnalyzeOptions};
+use std::path::PathBuf;
 use std::process::ExitCode;
+use std::time::Instant;
+
+mod bench;
 
 #[derive(Parser)]
-#[command(name = "shapeseek", version, about = "Non-rigid 3D shape retrieval with spectral shape distances")]
+#[command(
+    name = "shapeseek",
+    version,
+    about = "Non-rigid 3D shape retrieval with spectral shape distances"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -12,20 +26,239 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Read a mesh (or generate one), prepare it and print its Laplace–Beltrami spectrum.
+    Spectrum(SpectrumArgs),
+    /// Performance benchmarks (spectrum: Laplacian + factorisation + eigensolve, vs SciPy).
+    Bench(bench::BenchArgs),
     /// Evaluate retrieval on a benchmark manifest (mAP per transformation, ROC, PR).
     Eval(shapeseek::eval::EvalArgs),
 }
 
+#[derive(Args)]
+struct SpectrumArgs {
+    /// Mesh file (OBJ, glTF/GLB, PLY, OFF, STL); the format comes from its bytes first.
+    #[arg(required_unless_present = "generate")]
+    file: Option<PathBuf>,
+    /// Generate the mesh instead: `icosphere[:SUBDIVISIONS]`, `torus[:NU:NV]`,
+    /// `bumpy-torus[:NU:NV]`, `rectangle[:NX:NY]`.
+    #[arg(long, conflicts_with = "file")]
+    generate: Option<String>,
+    /// Format hint when the bytes are ambiguous (obj, gltf, glb, ply, off, stl).
+    #[arg(long)]
+    format: Option<Format>,
+    /// Number of eigenpairs.
+    #[arg(long, default_value_t = 100)]
+    k: usize,
+    /// Accepted relative residual of every eigenpair.
+    #[arg(long, default_value_t = 1e-9)]
+    tolerance: f64,
+    /// Eigensolver: auto, dense or krylov.
+    #[arg(long, default_value = "auto", value_parser = parse_method)]
+    method: Method,
+    /// Operator: cotangent (the paper's) or intrinsic-delaunay (robust to bad triangulations).
+    #[arg(long, default_value = "cotangent", value_parser = parse_laplacian)]
+    laplacian: LaplacianKind,
+    /// Keep every connected component (default: the largest by area).
+    #[arg(long)]
+    keep_all_components: bool,
+    /// Weld vertices closer than this fraction of the bounding-box diagonal (default: exact
+    /// duplicates only).
+    #[arg(long)]
+    weld_tolerance: Option<f64>,
+    /// Do not normalise to unit total area.
+    #[arg(long)]
+    no_normalize: bool,
+    /// Print one JSON object instead of a readable report.
+    #[arg(long)]
+    json: bool,
+    /// Also print every eigenpair's residual (JSON: `residuals`).
+    #[arg(long)]
+    residuals: bool,
+}
+
+fn parse_laplacian(s: &str) -> Result<LaplacianKind, String> {
+    match s {
+        "cotangent" => Ok(LaplacianKind::Cotangent),
+        "intrinsic-delaunay" => Ok(LaplacianKind::IntrinsicDelaunay),
+        _ => Err(format!(
+            "unknown Laplacian {s:?} (cotangent, intrinsic-delaunay)"
+        )),
+    }
+}
+
+fn parse_method(s: &str) -> Result<Method, String> {
+    match s {
+        "auto" => Ok(Method::Auto),
+        "dense" => Ok(Method::Dense),
+        "krylov" => Ok(Method::Krylov),
+        _ => Err(format!("unknown method {s:?} (auto, dense, krylov)")),
+    }
+}
+
+/// Builds a generated mesh from a `name[:a[:b]]` description.
+pub(crate) fn generated_mesh(desc: &str) -> shapeseek::Result<Mesh> {
+    let mut parts = desc.split(':');
+    let name = parts.next().unwrap_or_default();
+    let nums: Vec<usize> = parts
+        .map(|p| {
+            p.parse::<usize>().map_err(|_| {
+                shapeseek::Error::InvalidArgument(format!("bad number {p:?} in {desc:?}"))
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let arg = |i: usize, default: usize| nums.get(i).copied().unwrap_or(default);
+    let too_big = |v: usize| v > 4_000_000;
+    let mesh = match name {
+        "icosphere" if arg(0, 4) <= 9 => generate::icosphere(arg(0, 4) as u32),
+        "torus" if !too_big(arg(0, 64) * arg(1, 32)) => generate::torus(1.0, 0.35, arg(0, 64).max(3), arg(1, 32).max(3)),
+        "bumpy-torus" if !too_big(arg(0, 125) * arg(1, 80)) => {
+            generate::bumpy_torus(arg(0, 125).max(3), arg(1, 80).max(3))
+        }
+        "rectangle" if !too_big(arg(0, 80) * arg(1, 40)) => generate::rectangle(2.0, 1.0, arg(0, 80).max(1), arg(1, 40).max(1)),
+        _ => {
+            return Err(shapeseek::Error::InvalidArgument(format!(
+                "unknown or too large generated mesh {desc:?} (icosphere[:S≤9], torus[:NU:NV], bumpy-torus[:NU:NV], rectangle[:NX:NY])"
+            )))
+        }
+    };
+    Ok(mesh)
+}
+
+fn run_spectrum(args: &SpectrumArgs) -> shapeseek::Result<()> {
+    let t0 = Instant::now();
+    let (mesh, source) = match (&args.file, &args.generate) {
+        (Some(path), _) => {
+            let bytes = std::fs::read(path)?;
+            let hint = args.format.or_else(|| {
+                path.extension()
+                    .and_then(|e| e.to_str())
+                    .and_then(|e| e.parse::<Format>().ok())
+            });
+            (
+                read_mesh(&bytes, hint, &ReadLimits::default())?,
+                path.display().to_string(),
+            )
+        }
+        (None, Some(desc)) => (generated_mesh(desc)?, format!("generated {desc}")),
+        (None, None) => {
+            return Err(shapeseek::Error::InvalidArgument(
+                "give a FILE or --generate".into(),
+            ))
+        }
+    };
+    let read_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let opts = AnalyzeOptions {
+        prepare: PrepareOptions {
+            weld_tolerance: args.weld_tolerance,
+            components: if args.keep_all_components {
+                ComponentPolicy::All
+            } else {
+                ComponentPolicy::Largest
+            },
+            normalize_area: !args.no_normalize,
+            ..Default::default()
+        },
+        eigen: EigenOptions {
+            k: args.k,
+            tolerance: args.tolerance,
+            method: args.method,
+            ..Default::default()
+        },
+        laplacian: args.laplacian,
+    };
+    let a = analyze(&mesh, &opts)?;
+    let total_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let s = &a.spectrum;
+    let max_residual = shapeseek::eigen::max_or_nan(&s.residuals);
+    if args.json {
+        let mut out = json!({
+            "source": source,
+            "eigenvalues": s.eigenvalues,
+            "k": s.eigenvalues.len(),
+            "vertices": a.mesh.vertices.len(),
+            "faces": a.mesh.faces.len(),
+            "max_residual": max_residual,
+            "timings_ms": {
+                "read": read_ms,
+                "prepare": a.timings.prepare_ms,
+                "laplacian": a.timings.laplacian_ms,
+                "factorization": a.timings.factorization_ms,
+                "eigensolve": a.timings.eigensolve_ms,
+                "total": total_ms,
+            },
+            "prepare": a.report,
+            "solver": a.eigen_stats,
+        });
+        if args.residuals {
+            out["residuals"] = json!(s.residuals);
+        }
+        println!("{out}");
+    } else {
+        let r = &a.report;
+        println!("shapeseek spectrum — {source}");
+        println!(
+            "  mesh: {} vertices, {} faces in; {} vertices, {} faces after preparation",
+            r.vertices_in, r.faces_in, r.vertices_out, r.faces_out
+        );
+        println!(
+            "  preparation: {} welded, {} degenerate and {} duplicate faces dropped, {} component(s) ({} kept, {:.2}% of the area dropped)",
+            r.welded_vertices, r.degenerate_faces, r.duplicate_faces, r.components, r.components_kept, 100.0 * r.dropped_area_fraction
+        );
+        println!(
+            "  topology: {} boundary loop(s), {} non-manifold edge(s), {} inconsistently oriented edge(s), Euler characteristic {}",
+            r.boundary_loops, r.nonmanifold_edges, r.inconsistent_orientation_edges, r.euler_characteristic
+        );
+        println!(
+            "  area: {:.6} (coordinates scaled by {:.6})",
+            r.original_area, r.scale_factor
+        );
+        println!(
+            "  solver: {} (block {}, basis {}, {} restarts, {} solves), max relative residual {:.2e}",
+            a.eigen_stats.method,
+            a.eigen_stats.block_size,
+            a.eigen_stats.basis_size,
+            a.eigen_stats.restarts,
+            a.eigen_stats.operator_applications,
+            max_residual
+        );
+        println!(
+            "  time: read {:.1} ms, prepare {:.1} ms, Laplacian {:.1} ms, factorisation {:.1} ms, eigensolve {:.1} ms, total {:.1} ms",
+            read_ms, a.timings.prepare_ms, a.timings.laplacian_ms, a.timings.factorization_ms, a.timings.eigensolve_ms, total_ms
+        );
+        println!("  eigenvalues (unit-area shape unless --no-normalize):");
+        for (i, v) in s.eigenvalues.iter().enumerate() {
+            if args.residuals {
+                println!("    λ{i:<4} {v:>16.9}   residual {:.2e}", s.residuals[i]);
+            } else {
+                println!("    λ{i:<4} {v:>16.9}");
+            }
+        }
+    }
+    Ok(())
+}
+
 fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
     let cli = Cli::parse();
     let result = match &cli.command {
-        Command::Eval(args) => shapeseek::eval::run(args),
+        Command::Spectrum(a) => run_spectrum(a),
+        Command::Bench(a) => bench::run(a),
+        Command::Eval(a) => shapeseek::eval::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error [{}]: {e}", e.code());
-            ExitCode::FAILURE
+            ExitCode::from(if matches!(e, shapeseek::Error::Io(_)) {
+                74
+            } else {
+                65
+            })
         }
     }
 }

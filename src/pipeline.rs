@@ -4,9 +4,10 @@
 //! implementation of these steps anywhere.
 
 use crate::eigen::{EigenOptions, EigenStats};
+use crate::laplace::LaplacianKind;
 use crate::mesh::prepare::{prepare, PrepareOptions, PrepareReport};
 use crate::mesh::Mesh;
-use crate::spectrum::{compute_spectrum, Spectrum, SpectrumTimings};
+use crate::spectrum::{compute_spectrum_with, Spectrum, SpectrumTimings};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
@@ -18,6 +19,8 @@ pub struct AnalyzeOptions {
     pub prepare: PrepareOptions,
     /// Eigensolver (number of pairs `k`, tolerance, method).
     pub eigen: EigenOptions,
+    /// Discretisation of the Laplace–Beltrami operator (cotangent by default).
+    pub laplacian: LaplacianKind,
 }
 
 /// Milliseconds per stage.
@@ -54,7 +57,7 @@ pub fn analyze(mesh: &Mesh, opts: &AnalyzeOptions) -> crate::Result<Analysis> {
     let (prepared, report) = prepare(mesh, &opts.prepare)?;
     let prepare_ms = t0.elapsed().as_secs_f64() * 1e3;
     let (spectrum, eigen_stats, st): (Spectrum, EigenStats, SpectrumTimings) =
-        compute_spectrum(&prepared, &opts.eigen)?;
+        compute_spectrum_with(&prepared, opts.laplacian, &opts.eigen)?;
     Ok(Analysis {
         mesh: prepared,
         report,

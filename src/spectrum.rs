@@ -18,7 +18,7 @@ pub struct Spectrum {
 }
 
 use crate::eigen::{smallest_eigenpairs, EigenOptions, EigenStats};
-use crate::laplace::cotangent_laplacian;
+use crate::laplace::{laplacian, LaplacianKind};
 use crate::mesh::Mesh;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
@@ -34,14 +34,23 @@ pub struct SpectrumTimings {
     pub eigensolve_ms: f64,
 }
 
-/// The spectrum of `mesh` as it is (callers normally pass a prepared, unit-area mesh), with
-/// solver statistics and timings.
+/// The spectrum of `mesh` as it is (callers normally pass a prepared, unit-area mesh) with the
+/// cotangent Laplacian, with solver statistics and timings.
 pub fn compute_spectrum(
     mesh: &Mesh,
     opts: &EigenOptions,
 ) -> crate::Result<(Spectrum, EigenStats, SpectrumTimings)> {
+    compute_spectrum_with(mesh, LaplacianKind::Cotangent, opts)
+}
+
+/// [`compute_spectrum`] with a chosen discretisation of the operator.
+pub fn compute_spectrum_with(
+    mesh: &Mesh,
+    kind: LaplacianKind,
+    opts: &EigenOptions,
+) -> crate::Result<(Spectrum, EigenStats, SpectrumTimings)> {
     let t0 = Instant::now();
-    let lap = cotangent_laplacian(mesh)?;
+    let lap = laplacian(mesh, kind)?;
     let laplacian_ms = t0.elapsed().as_secs_f64() * 1e3;
     let pairs = smallest_eigenpairs(&lap.stiffness, &lap.mass, opts)?;
     let timings = SpectrumTimings {

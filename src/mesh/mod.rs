@@ -8,12 +8,15 @@ pub mod prepare;
 pub mod read;
 pub mod write;
 
+pub use read::{detect_format, read_mesh, read_path, Format, ReadLimits};
+pub use write::write_mesh;
+
 use serde::{Deserialize, Serialize};
 
 /// A triangle mesh: vertex positions and triangles as indices into `vertices`.
 ///
 /// Readers produce it as found in the file (polygons triangulated, objects merged, node transforms
-/// applied); [`prepare`](crate::mesh) cleans it. Indices are `u32`: limits keep meshes far below.
+/// applied); [`prepare::prepare`] cleans it. Indices are `u32`: limits keep meshes far below.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct Mesh {
     /// Vertex positions.

@@ -278,7 +278,15 @@ pub fn prepare_with_map(
                 }
             }
             faces.truncate(k);
-            (1, dropped / total_area)
+            // An empty f64 sum is -0.0: report a clean 0 when nothing was dropped.
+            (
+                1,
+                if dropped > 0.0 {
+                    dropped / total_area
+                } else {
+                    0.0
+                },
+            )
         }
     };
     let component_faces_dropped =

@@ -1,0 +1,295 @@
+//! `shapeseek bench spectrum`: time the whole spectrum (Laplacian + factorisation + eigensolve)
+//! on generated meshes of several sizes, with peak memory, and — where Python with SciPy is
+//! installed — the ratio to `scipy.sparse.linalg.eigsh` in shift-invert mode on the very same
+//! matrices (exported from Rust as Matrix Market files), measured in the same run.
+//!
+//! Each case runs in a child process of this binary so its peak resident memory (VmHWM) is its
+//! own.
+
+use clap::{Args, Subcommand};
+use serde::{Deserialize, Serialize};
+use shapeseek::eigen::{smallest_eigenpairs, EigenOptions};
+use shapeseek::laplace::{cotangent_laplacian, write_matrix_market};
+use shapeseek::mesh::generate;
+use shapeseek::mesh::prepare::{prepare, PrepareOptions};
+use shapeseek::{Error, Result};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+#[derive(Args)]
+pub struct BenchArgs {
+    #[command(subcommand)]
+    what: BenchWhat,
+}
+
+#[derive(Subcommand)]
+enum BenchWhat {
+    /// Spectrum of generated bumpy tori (no symmetry) of the given sizes.
+    Spectrum(SpectrumBench),
+}
+
+#[derive(Args)]
+struct SpectrumBench {
+    /// Approximate vertex counts.
+    #[arg(long, value_delimiter = ',', default_value = "10000,50000,200000")]
+    sizes: Vec<usize>,
+    /// Numbers of eigenpairs.
+    #[arg(long, value_delimiter = ',', default_value = "100,200")]
+    ks: Vec<usize>,
+    /// Skip the SciPy comparison even when SciPy is installed.
+    #[arg(long)]
+    no_scipy: bool,
+    /// Python interpreter used for the SciPy comparison.
+    #[arg(long, default_value = "python3")]
+    python: String,
+    /// ARPACK `tol` given to eigsh (0 = machine precision, SciPy's default).
+    #[arg(long, default_value_t = 0.0)]
+    scipy_tol: f64,
+    /// Write a JSON summary here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Internal: run one case `SIZE:K` in this process and print its JSON.
+    #[arg(long, hide = true)]
+    single: Option<String>,
+    /// Internal: where the single case exports its matrices.
+    #[arg(long, hide = true)]
+    export: Option<PathBuf>,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+struct CaseResult {
+    vertices: usize,
+    k: usize,
+    prepare_s: f64,
+    laplacian_s: f64,
+    factorization_s: f64,
+    eigensolve_s: f64,
+    total_s: f64,
+    peak_mib: f64,
+    max_residual: f64,
+    restarts: usize,
+    solves: usize,
+    shift: f64,
+    scipy: Option<ScipyResult>,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+struct ScipyResult {
+    seconds: f64,
+    peak_mib: f64,
+    max_residual: f64,
+    max_rel_diff: f64,
+}
+
+pub fn run(args: &BenchArgs) -> Result<()> {
+    match &args.what {
+        BenchWhat::Spectrum(b) => match &b.single {
+            Some(case) => run_single(case, b.export.as_deref()),
+            None => run_all(b),
+        },
+    }
+}
+
+/// Torus grid `nu × nv ≈ size` with aspect 5:4.
+fn grid(size: usize) -> (usize, usize) {
+    let nu = ((size as f64 * 1.25).sqrt().round() as usize).max(3);
+    (nu, (size / nu).max(3))
+}
+
+fn peak_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|v| v.parse::<f64>().ok())
+            })
+        })
+        .map(|kib| kib / 1024.0)
+        .unwrap_or(f64::NAN)
+}
+
+fn run_single(case: &str, export: Option<&Path>) -> Result<()> {
+    let bad = || Error::InvalidArgument(format!("--single wants SIZE:K, got {case:?}"));
+    let (size, k) = case.split_once(':').ok_or_else(bad)?;
+    let size: usize = size.parse().map_err(|_| bad())?;
+    let k: usize = k.parse().map_err(|_| bad())?;
+    let (nu, nv) = grid(size);
+    let raw = generate::bumpy_torus(nu, nv);
+    let tp = Instant::now();
+    let (mesh, _) = prepare(&raw, &PrepareOptions::default())?;
+    let prepare_s = tp.elapsed().as_secs_f64();
+    let t0 = Instant::now();
+    let lap = cotangent_laplacian(&mesh)?;
+    let laplacian_s = t0.elapsed().as_secs_f64();
+    let pairs = smallest_eigenpairs(
+        &lap.stiffness,
+        &lap.mass,
+        &EigenOptions {
+            k,
+            ..Default::default()
+        },
+    )?;
+    let total_s = t0.elapsed().as_secs_f64();
+    let result = CaseResult {
+        vertices: mesh.vertices.len(),
+        k,
+        prepare_s,
+        laplacian_s,
+        factorization_s: pairs.stats.factor_ms / 1e3,
+        eigensolve_s: pairs.stats.iterate_ms / 1e3,
+        total_s,
+        peak_mib: peak_mib(),
+        max_residual: shapeseek::eigen::max_or_nan(&pairs.residuals),
+        restarts: pairs.stats.restarts,
+        solves: pairs.stats.operator_applications,
+        shift: pairs.stats.shift,
+        scipy: None,
+    };
+    if let Some(dir) = export {
+        std::fs::create_dir_all(dir)?;
+        let mut f = std::io::BufWriter::new(std::fs::File::create(dir.join("L.mtx"))?);
+        write_matrix_market(&lap.stiffness, &mut f)?;
+        f.flush()?;
+        let mut f = std::io::BufWriter::new(std::fs::File::create(dir.join("mass.txt"))?);
+        for a in &lap.mass {
+            writeln!(f, "{a:e}")?;
+        }
+        f.flush()?;
+        let mut f = std::io::BufWriter::new(std::fs::File::create(dir.join("ours.txt"))?);
+        for v in &pairs.values {
+            writeln!(f, "{v:e}")?;
+        }
+        f.flush()?;
+    }
+    println!(
+        "{}",
+        serde_json::to_string(&result).map_err(|e| Error::Numerical(e.to_string()))?
+    );
+    Ok(())
+}
+
+const SCIPY_SCRIPT: &str = r#"
+import json, resource, sys, time
+import numpy as np, scipy.io, scipy.sparse as sp, scipy.sparse.linalg as sla
+d, k, sigma, tol = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
+L = scipy.io.mmread(d + "/L.mtx").tocsc()
+a = np.loadtxt(d + "/mass.txt")
+ours = np.loadtxt(d + "/ours.txt")
+A = sp.diags(a).tocsc()
+t = time.perf_counter()
+vals, vecs = sla.eigsh(L, k=k, M=A, sigma=sigma, which="LM", tol=tol)
+dt = time.perf_counter() - t
+order = np.argsort(vals); vals = vals[order]; vecs = vecs[:, order]
+lam_ref = 4 * np.pi / a.sum()
+R = L @ vecs - (A @ vecs) * vals
+res = np.linalg.norm(R, axis=0) / ((np.abs(vals) + lam_ref) * np.linalg.norm(A @ vecs, axis=0))
+rel = np.abs(vals[1:] - ours[1:]) / np.abs(vals[1:])
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+print(json.dumps({"seconds": dt, "peak_mib": peak, "max_residual": float(res.max()), "max_rel_diff": float(rel.max())}))
+"#;
+
+fn scipy_available(python: &str) -> bool {
+    Command::new(python)
+        .args(["-c", "import scipy, numpy"])
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false)
+}
+
+fn run_all(b: &SpectrumBench) -> Result<()> {
+    let exe = std::env::current_exe()?;
+    let use_scipy = !b.no_scipy && scipy_available(&b.python);
+    if !use_scipy && !b.no_scipy {
+        eprintln!(
+            "note: {} with scipy not found: no SciPy comparison (pip install scipy)",
+            b.python
+        );
+    }
+    let tmp = std::env::temp_dir().join(format!("shapeseek-bench-{}", std::process::id()));
+    let script = tmp.join("eigsh.py");
+    std::fs::create_dir_all(&tmp)?;
+    std::fs::write(&script, SCIPY_SCRIPT)?;
+    println!(
+        "{:>8} {:>4} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>7} {:>9} {:>9} {:>7} {:>9}",
+        "vertices",
+        "k",
+        "prep s",
+        "lapl s",
+        "factor s",
+        "eigen s",
+        "total s",
+        "peak MiB",
+        "max res",
+        "solves",
+        "scipy s",
+        "scipy MiB",
+        "ratio",
+        "max |Δλ|"
+    );
+    let mut results = Vec::new();
+    for &size in &b.sizes {
+        for &k in &b.ks {
+            let dir = tmp.join(format!("{size}-{k}"));
+            let mut cmd = Command::new(&exe);
+            cmd.args(["bench", "spectrum", "--single", &format!("{size}:{k}")]);
+            if use_scipy {
+                cmd.arg("--export").arg(&dir);
+            }
+            let out = cmd.output()?;
+            if !out.status.success() {
+                return Err(Error::Numerical(format!(
+                    "case {size}:{k} failed: {}",
+                    String::from_utf8_lossy(&out.stderr)
+                )));
+            }
+            let mut r: CaseResult = serde_json::from_slice(&out.stdout)
+                .map_err(|e| Error::Numerical(format!("case {size}:{k}: bad output: {e}")))?;
+            if use_scipy {
+                let o = Command::new(&b.python)
+                    .arg(&script)
+                    .arg(&dir)
+                    .arg(k.to_string())
+                    .arg(r.shift.to_string())
+                    .arg(b.scipy_tol.to_string())
+                    .env("OMP_NUM_THREADS", "1")
+                    .output()?;
+                if o.status.success() {
+                    r.scipy = serde_json::from_slice(&o.stdout).ok();
+                } else {
+                    eprintln!(
+                        "scipy case {size}:{k} failed: {}",
+                        String::from_utf8_lossy(&o.stderr)
+                    );
+                }
+                let _ = std::fs::remove_dir_all(&dir);
+            }
+            let (ss, sm, ratio, diff) = match &r.scipy {
+                Some(s) => (
+                    format!("{:.2}", s.seconds),
+                    format!("{:.0}", s.peak_mib),
+                    format!("{:.2}x", s.seconds / r.total_s),
+                    format!("{:.1e}", s.max_rel_diff),
+                ),
+                None => ("-".into(), "-".into(), "-".into(), "-".into()),
+            };
+            println!(
+                "{:>8} {:>4} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>9.0} {:>8.1e} {:>7} {:>9} {:>9} {:>7} {:>9}",
+                r.vertices, r.k, r.prepare_s, r.laplacian_s, r.factorization_s, r.eigensolve_s, r.total_s, r.peak_mib, r.max_residual, r.solves, ss, sm, ratio, diff
+            );
+            results.push(r);
+        }
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+    println!("total = Laplacian + factorisation + eigensolve (prep = cleaning + normalisation, not in total); ratio = SciPy eigsh seconds / shapeseek total, same matrices, same k, same shift; max |Δλ| = largest relative difference of λ1..λk-1.");
+    if let Some(path) = &b.json {
+        std::fs::write(
+            path,
+            serde_json::to_vec_pretty(&results).map_err(|e| Error::Numerical(e.to_string()))?,
+        )?;
+    }
+    Ok(())
+}
