@@ -109,6 +109,13 @@ fn quadrature_errors(specs: &[(&str, SignatureSpec)]) -> Vec<(f64, f64)> {
         .iter()
         .map(|(_, s)| compute_signature(&a, s).expect("signature"))
         .collect();
+    // Every quadrature carries the whole mass of μ × μ (area² = 1).
+    for sig in &sigs {
+        for c in 0..sig.channels.len() {
+            let m = sketch_of(sig, c).mass;
+            assert!((m - 1.0).abs() < 1e-9, "mass {m}");
+        }
+    }
     let mut worst = vec![(0.0f64, 0.0f64); specs.len()];
     for (c, &t) in DEFAULT_HEAT_SCALES.iter().enumerate() {
         let w = transfer_weights(&Kernel::Heat { t }, &a.spectrum.eigenvalues, zero_tol);
@@ -172,16 +179,18 @@ fn quadrature_sweep() {
         s.sketch_quantiles = q;
         specs.push((["exactQ512", "exactQ1024", "exactQ2048"][q / 1024], s));
     }
-    for (name, samples, cell_means) in [
-        ("fps500", 500, false),
-        ("fps1000", 1000, false),
-        ("fps1000cm", 1000, true),
-        ("fps1500", 1500, false),
+    for (name, samples, cell_means, near_field) in [
+        ("fps500", 500, false, true),
+        ("fps1000", 1000, false, true),
+        ("fps1000-nonear", 1000, false, false),
+        ("fps1000cm", 1000, true, false),
+        ("fps1500", 1500, false, true),
     ] {
         let mut s = base.clone();
         s.quadrature = PairQuadrature::Farthest {
             samples,
             cell_means,
+            near_field,
         };
         specs.push((name, s));
     }
@@ -209,6 +218,7 @@ fn timing_10k() {
     s1500.quadrature = PairQuadrature::Farthest {
         samples: 1500,
         cell_means: false,
+        near_field: true,
     };
     specs.push(("heat6-l2-fps1500", s1500));
     specs.push((
@@ -265,7 +275,7 @@ fn timing_parts_10k() {
             zt,
         )];
         let t = std::time::Instant::now();
-        let fine = l2_pairs(rows.as_ref(), &q.weights, &w, PairMode::Single);
+        let fine = l2_pairs(rows.as_ref(), &q.weights, &w, PairMode::Single, None);
         let t1 = t.elapsed().as_secs_f64() * 1e3;
         let _ = fine.sketch(1024);
         println!(
