@@ -835,3 +835,32 @@ fn quadrature_error_10k() {
     );
     assert!(worst[0] < 0.02);
 }
+
+/// Quadrature error of the L1 / L∞ channels (300, 500, 800 nodes) against 1 200 nodes on a
+/// 2 562-vertex shape (not a pass/fail test:
+/// `cargo test --release --lib signature::tests::lp_quadrature_error -- --ignored --nocapture`).
+#[test]
+#[ignore]
+fn lp_quadrature_error() {
+    let a = analysis_of(&generate::bumpy_sphere(4, 0.2), 100, true);
+    let n = 1200;
+    let chans = vec![
+        ChannelSpec::heat(0.04, Norm::L1),
+        ChannelSpec::heat(0.1, Norm::L1),
+        ChannelSpec::heat(0.1, Norm::LInf),
+    ];
+    let mut exact = SignatureSpec::with_channels(chans.clone());
+    exact.lp_samples = n;
+    let e = compute_signature(&a, &exact).expect("sig");
+    for m in [300, 500, 800] {
+        let mut s = SignatureSpec::with_channels(chans.clone());
+        s.lp_samples = m;
+        let sig = compute_signature(&a, &s).expect("sig");
+        for (c, ch) in chans.iter().enumerate() {
+            let es = sketch_of(&e, c);
+            let w = es.quantiles[(0.95 * (es.quantiles.len() - 1) as f64) as usize];
+            let err = nl1(&hist(sketch_of(&sig, c), w).prob, &hist(es, w).prob);
+            println!("{} with {m} nodes vs {n}: nL1 {err:.4}", ch.name());
+        }
+    }
+}
