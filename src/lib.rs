@@ -13,6 +13,7 @@ pub mod laplace;
 pub mod mesh;
 pub mod pipeline;
 pub mod ranking;
+pub mod rerank;
 pub mod signature;
 pub mod spectrum;
 

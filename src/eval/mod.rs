@@ -85,6 +85,18 @@ pub struct EvalArgs {
     /// No progress output.
     #[arg(long)]
     pub quiet: bool,
+    // --- q5 (retrieval quality) options: see `crate::rerank` and docs/quality.md. ---
+    /// Re-ranking stage applied to every configuration's ranking, evaluated as an extra
+    /// configuration `<config>+<STAGE>` (repeatable): `sgw:K[:key=value]...`, a JSON stage or a
+    /// JSON file (see `shapeseek::rerank::eval`).
+    #[arg(long)]
+    pub rerank: Vec<String>,
+    /// Only the manifest rows of these classes (comma-separated), e.g. for a class split.
+    #[arg(long, value_delimiter = ',')]
+    pub classes: Vec<String>,
+    /// Laplace–Beltrami operator: cotangent or intrinsic-delaunay.
+    #[arg(long, default_value = "cotangent")]
+    pub laplacian: String,
 }
 
 impl EvalArgs {
@@ -102,6 +114,9 @@ impl EvalArgs {
             reference: None,
             per_strength: false,
             quiet: true,
+            rerank: Vec::new(),
+            classes: Vec::new(),
+            laplacian: "cotangent".into(),
         }
     }
 }
@@ -349,7 +364,7 @@ impl Progress {
 
 /// Part of the analysis cache key besides the mesh bytes and the options: the crate version, so
 /// that a new release never reuses spectra computed by an older solver.
-const ANALYSIS_VERSION: &str = concat!("shapeseek ", env!("CARGO_PKG_VERSION"));
+pub(crate) const ANALYSIS_VERSION: &str = concat!("shapeseek ", env!("CARGO_PKG_VERSION"));
 
 /// The signatures of one shape (one per union specification), or why it failed.
 type ShapeResult = std::result::Result<Vec<Signature>, (String, String)>;
@@ -517,7 +532,18 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     if args.k < 2 {
         return Err(Error::InvalidArgument("--k must be at least 2".into()));
     }
-    let manifest = Manifest::read(&args.manifest)?;
+    let mut manifest = Manifest::read(&args.manifest)?;
+    if !args.classes.is_empty() {
+        manifest.entries.retain(|e| args.classes.iter().any(|c| c == &e.class));
+        if manifest.entries.is_empty() {
+            return Err(Error::InvalidArgument(format!("--classes {}: no manifest row", args.classes.join(","))));
+        }
+    }
+    let rerank_stages: Vec<(String, crate::rerank::RerankStage)> = args
+        .rerank
+        .iter()
+        .map(|r| crate::rerank::eval::parse_stage(r).map(|s| (r.clone(), s)))
+        .collect::<Result<_>>()?;
     let configs = load_configs(args.config.as_deref())?;
     let (specs, group_of) = union_specs(&configs);
     let spec_keys: Vec<String> = specs.iter().map(|s| s.key()).collect();
@@ -525,6 +551,11 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     let cache = Cache::new(cache_dir)?;
     let mut opts = AnalyzeOptions::default();
     opts.eigen.k = args.k;
+    opts.laplacian = match args.laplacian.as_str() {
+        "cotangent" => crate::laplace::LaplacianKind::Cotangent,
+        "intrinsic-delaunay" => crate::laplace::LaplacianKind::IntrinsicDelaunay,
+        o => return Err(Error::InvalidArgument(format!("--laplacian {o}: cotangent or intrinsic-delaunay"))),
+    };
     let opts_json = serde_json::to_vec(&opts).expect("options serialise");
     let limits = ReadLimits::default();
     let clock = StageClock::default();
@@ -588,6 +619,27 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         })
         .collect();
     let calibration_histograms_s = t_cal.elapsed().as_secs_f64();
+    // q5: re-ranking payloads, one set per distinct payload specification.
+    let mut rerank_notes = String::new();
+    let mut payload_sets: Vec<(String, Vec<Option<crate::rerank::GwPayload>>)> = Vec::new();
+    for (_, st) in &rerank_stages {
+        if let Some(ps) = st.payload_spec() {
+            let key = ps.key();
+            if !payload_sets.iter().any(|(k, _)| *k == key) {
+                let t = Instant::now();
+                let akey = |bytes: &[u8]| {
+                    let content = hash_parts(&[bytes]);
+                    hash_parts(&[content.as_bytes(), &opts_json, ANALYSIS_VERSION.as_bytes()])
+                };
+                let pl = crate::rerank::eval::shape_payloads(&manifest, &included, &opts, &akey, &cache, ps);
+                rerank_notes.push_str(&format!(
+                    "- payload `{}` ({} samples, t = {:?}, {:?}, {:?}): {:.1} s for {} shapes (cached under `gw/`)\n",
+                    key, ps.samples, ps.times, ps.metric, ps.time_rule, t.elapsed().as_secs_f64(), pl.iter().filter(|p| p.is_some()).count()
+                ));
+                payload_sets.push((key, pl));
+            }
+        }
+    }
 
     // Ranking.
     let t_rank = Instant::now();
@@ -625,6 +677,28 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         let eval = metrics::evaluate(&dist, n, &classes, &transforms, &strengths, &included);
         metrics_s += t.elapsed().as_secs_f64();
         results.push(ConfigResult { name: cfg.name.clone(), eval, alias: alias_of(cfg) });
+        for (label, st) in &rerank_stages {
+            let empty = Vec::new();
+            let pl = st
+                .payload_spec()
+                .and_then(|ps| payload_sets.iter().find(|(k, _)| *k == ps.key()))
+                .map(|(_, p)| p)
+                .unwrap_or(&empty);
+            let pl: &[Option<crate::rerank::GwPayload>] = if pl.is_empty() { &[] } else { pl };
+            let payloads: Vec<Option<crate::rerank::GwPayload>> =
+                if pl.is_empty() { vec![None; n] } else { pl.to_vec() };
+            let (d2, stats) = crate::rerank::eval::rerank_matrix(&dist, n, &included, &payloads, st);
+            let eval = metrics::evaluate(&d2, n, &classes, &transforms, &strengths, &included);
+            let name = format!("{}+{}", cfg.name, label);
+            rerank_notes.push_str(&format!(
+                "- `{name}`: {} distinct pairs in {:.1} s wall; {:.2} ms CPU per GW solve; `rerank::apply` on one query's shortlist: {:.1} ms wall\n",
+                stats.pairs, stats.wall_s, stats.per_candidate_ms, stats.per_query_ms
+            ));
+            if !args.quiet {
+                eprintln!("eval: {name}: {} pairs, {:.1} s, {:.2} ms/solve, {:.1} ms/query", stats.pairs, stats.wall_s, stats.per_candidate_ms, stats.per_query_ms);
+            }
+            results.push(ConfigResult { name, eval, alias: None });
+        }
     }
     drop(channel_cache);
     let ranking_s = t_rank.elapsed().as_secs_f64();
@@ -673,7 +747,10 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     }
     timings.report_s = t_rep.elapsed().as_secs_f64();
     timings.total_s = t_total.elapsed().as_secs_f64();
-    let markdown = markdown_report(args, &manifest, &results, &failures, &timings, cache_counts, reference.as_ref(), reference_path.as_deref());
+    let mut markdown = markdown_report(args, &manifest, &results, &failures, &timings, cache_counts, reference.as_ref(), reference_path.as_deref());
+    if !rerank_notes.is_empty() {
+        markdown.push_str(&format!("\n## Re-ranking (q5)\n\n{rerank_notes}"));
+    }
     if let Some(dir) = &args.out {
         std::fs::write(dir.join("results.md"), &markdown)?;
     }

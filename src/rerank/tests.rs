@@ -1,0 +1,251 @@
+use super::*;
+use crate::mesh::{generate, Mesh};
+use crate::pipeline::{analyze, AnalyzeOptions};
+use faer::Mat;
+
+/// Deterministic pseudo-random numbers in [0, 1) (SplitMix64).
+fn rng(seed: u64) -> impl FnMut() -> f64 {
+    let mut s = seed;
+    move || {
+        s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = s;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// Euclidean distance matrix of `m` random points in the box `[0,1]×[0,1]×[0,h]` and random
+/// weights summing to 1.
+fn random_space(m: usize, h: f64, seed: u64) -> (Mat<f64>, Vec<f64>) {
+    let mut r = rng(seed);
+    let pts: Vec<[f64; 3]> = (0..m).map(|_| [r(), r(), h * r()]).collect();
+    let c = Mat::from_fn(m, m, |i, j| {
+        let d: f64 = (0..3).map(|k| (pts[i][k] - pts[j][k]).powi(2)).sum();
+        d.sqrt()
+    });
+    let mut w: Vec<f64> = (0..m).map(|_| 0.5 + r()).collect();
+    let s: f64 = w.iter().sum();
+    w.iter_mut().for_each(|x| *x /= s);
+    (c, w)
+}
+
+/// Sharp regularisation for the metric-space tests (ε = 0.003 × mean product cost).
+fn sharp() -> GwOptions {
+    GwOptions { eps_rel: 0.003, ..GwOptions::default() }
+}
+
+fn gw(c1: &Mat<f64>, p: &[f64], c2: &Mat<f64>, q: &[f64]) -> f64 {
+    entropic_gw(&[c1.as_ref()], p, &[c2.as_ref()], q, &sharp()).value
+}
+
+#[test]
+fn gw_of_a_space_with_itself_is_minimal_and_gw_is_symmetric() {
+    let (x, p) = random_space(60, 1.0, 1);
+    let (y, q) = random_space(50, 1.0, 2);
+    let (z, r) = random_space(70, 0.2, 3);
+    let xx = gw(&x, &p, &x, &p);
+    let xy = gw(&x, &p, &y, &q);
+    let yx = gw(&y, &q, &x, &p);
+    let xz = gw(&x, &p, &z, &r);
+    // Scale of the energy: E under the product measure.
+    let mut prod = 0.0;
+    for i in 0..60 {
+        for k in 0..60 {
+            for j in 0..60 {
+                for l in 0..60 {
+                    prod += (x[(i, k)] - x[(j, l)]).powi(2) * p[i] * p[k] * p[j] * p[l];
+                }
+            }
+        }
+    }
+    assert!(xx < 0.02 * prod, "GW(X,X) = {xx}, product-measure energy {prod}");
+    assert!(xx < xy && xx < xz, "GW(X,X) = {xx}, GW(X,Y) = {xy}, GW(X,Z) = {xz}");
+    // Two draws from the same distribution are closer than a flat box.
+    assert!(xy < xz, "GW(X,Y) = {xy} vs GW(X,Z) = {xz}");
+    // The solver in either order: equal to a relative 1e-3.
+    assert!((xy - yx).abs() <= 1e-3 * xy, "GW(X,Y) = {xy}, GW(Y,X) = {yx}");
+    // The transport plan of X with itself concentrates on the diagonal.
+    let res = entropic_gw(&[x.as_ref()], &p, &[x.as_ref()], &p, &sharp());
+    let diag: f64 = (0..60).map(|i| res.plan[(i, i)]).sum();
+    assert!(diag > 0.8, "diagonal mass {diag}");
+    // Marginals of the returned plan.
+    for i in 0..60 {
+        let row: f64 = (0..60).map(|j| res.plan[(i, j)]).sum();
+        assert!((row - p[i]).abs() < 1e-4, "row {i}: {row} vs {}", p[i]);
+    }
+}
+
+#[test]
+fn gw_is_invariant_to_a_permutation_of_samples() {
+    let (x, p) = random_space(50, 1.0, 11);
+    let (y, q) = random_space(40, 0.7, 12);
+    let mut r = rng(99);
+    let mut perm: Vec<usize> = (0..40).collect();
+    for i in (1..40).rev() {
+        let j = (r() * (i + 1) as f64) as usize;
+        perm.swap(i, j);
+    }
+    let yp = Mat::from_fn(40, 40, |i, j| y[(perm[i], perm[j])]);
+    let qp: Vec<f64> = perm.iter().map(|&i| q[i]).collect();
+    let a = gw(&x, &p, &y, &q);
+    let b = gw(&x, &p, &yp, &qp);
+    assert!((a - b).abs() <= 1e-9 * a, "{a} vs {b}");
+    assert!(perm.iter().enumerate().any(|(i, &j)| i != j));
+}
+
+fn payload_of(mesh: &Mesh, spec: &PayloadSpec) -> GwPayload {
+    let mut opts = AnalyzeOptions::default();
+    opts.eigen.k = 40;
+    let a = analyze(mesh, &opts).expect("analysis");
+    compute_payload(&a, spec).expect("payload")
+}
+
+/// The rectangle rolled onto a cylinder of radius `radius` along x (an isometric bending).
+fn rolled(mut m: Mesh, radius: f64) -> Mesh {
+    for v in &mut m.vertices {
+        let a = v[0] / radius;
+        *v = [radius * a.sin(), v[1], radius * (1.0 - a.cos())];
+    }
+    m
+}
+
+fn small_spec() -> PayloadSpec {
+    PayloadSpec {
+        samples: 80,
+        times: vec![0.04],
+        ..PayloadSpec::default()
+    }
+}
+
+#[test]
+fn gw_separates_different_generated_shapes_from_poses_and_remeshes() {
+    let spec = small_spec();
+    let o = GwOptions::default();
+    // Remeshes of one surface vs another surface.
+    let t1 = payload_of(&generate::bumpy_torus(48, 20), &spec);
+    let t2 = payload_of(&generate::bumpy_torus(64, 26), &spec);
+    let s = payload_of(&generate::bumpy_sphere(3, 0.3), &spec);
+    let same = gw_score(&t1, &t2, &o);
+    let diff = gw_score(&t1, &s, &o);
+    assert!(same < 0.5 * diff, "remesh {same} vs different {diff}");
+    // An isometric bending of a rectangle vs a rectangle of another aspect ratio.
+    let flat = payload_of(&generate::rectangle(2.0, 1.0, 40, 20), &spec);
+    let bent = payload_of(&rolled(generate::rectangle(2.0, 1.0, 40, 20), 0.8), &spec);
+    let long = payload_of(&generate::rectangle(4.0, 0.5, 60, 8), &spec);
+    let pose = gw_score(&flat, &bent, &o);
+    let other = gw_score(&flat, &long, &o);
+    assert!(pose < 0.5 * other, "pose {pose} vs different {other}");
+    // Symmetric bit for bit.
+    assert_eq!(gw_score(&t1, &s, &o), gw_score(&s, &t1, &o));
+}
+
+#[test]
+fn payload_round_trip_and_malformed_input() {
+    let spec = PayloadSpec {
+        samples: 30,
+        times: vec![0.02, 0.1],
+        metric: GwMetric::HeatKernel,
+        time_rule: TimeRule::Lambda1,
+    };
+    let p = payload_of(&generate::bumpy_sphere(2, 0.3), &spec);
+    assert_eq!(p.samples, 30);
+    assert_eq!(p.upper.len(), 2);
+    assert!((p.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+    assert!((p.times[0] * p.lambda1 - 0.02).abs() < 1e-12);
+    let b = p.to_bytes();
+    assert_eq!(GwPayload::from_bytes(&b).unwrap(), p);
+    let json = serde_json::to_string(&p).unwrap();
+    let back: GwPayload = serde_json::from_str(&json).unwrap();
+    assert_eq!(back.upper, p.upper);
+    assert_eq!(back.spec_key, p.spec_key);
+    assert!(GwPayload::from_bytes(&b[..b.len() - 1]).is_err());
+    let mut bad = b.clone();
+    bad[0] = b'X';
+    assert!(GwPayload::from_bytes(&bad).is_err());
+    // The dense matrix is symmetric with the stored diagonal.
+    let m = p.matrix(1);
+    assert_eq!(m[(3, 7)], m[(7, 3)]);
+    assert_eq!(m[(5, 5)], p.diagonal[1][5] as f64);
+    // Stage (de)serialisation.
+    let st = RerankStage::SpectralGw(SgwStage::default());
+    let j = serde_json::to_string(&st).unwrap();
+    assert_eq!(serde_json::from_str::<RerankStage>(&j).unwrap(), st);
+    assert_eq!(eval::parse_stage("sgw:50").unwrap(), st);
+    assert!(eval::parse_stage("sgw:x").is_err());
+}
+
+#[test]
+fn rerank_reorders_a_shortlist_deterministically() {
+    let spec = small_spec();
+    let q = payload_of(&generate::bumpy_torus(48, 20), &spec);
+    let near = payload_of(&generate::bumpy_torus(60, 24), &spec);
+    let far1 = payload_of(&generate::bumpy_sphere(3, 0.3), &spec);
+    let far2 = payload_of(&generate::rectangle(2.0, 1.0, 30, 15), &spec);
+    // First stage put the true match last.
+    let cands = vec![
+        Candidate { id: "sphere", score: 0.1, payload: Some(&far1) },
+        Candidate { id: "plate", score: 0.2, payload: Some(&far2) },
+        Candidate { id: "none", score: 0.25, payload: None },
+        Candidate { id: "torus", score: 0.3, payload: Some(&near) },
+    ];
+    let stage = RerankStage::SpectralGw(SgwStage { shortlist: 4, payload: spec, ..SgwStage::default() });
+    let a = apply(&stage, &q, &cands);
+    let b = apply(&stage, &q, &cands);
+    assert_eq!(a, b);
+    assert_eq!(a[0].0, "torus");
+    assert_eq!(a.last().unwrap().0, "none");
+    assert!(a.windows(2).all(|w| w[0].1 <= w[1].1));
+    // `None` keeps the first-stage order and scores.
+    let keep = apply(&RerankStage::None, &q, &cands);
+    assert_eq!(keep.iter().map(|x| x.0).collect::<Vec<_>>(), ["sphere", "plate", "none", "torus"]);
+    // Rank blend with weight 1 is the first-stage order.
+    let blend = RerankStage::SpectralGw(SgwStage {
+        shortlist: 4,
+        payload: small_spec(),
+        fusion: Fusion::RankBlend { weight: 1.0 },
+        ..SgwStage::default()
+    });
+    let c = apply(&blend, &q, &cands);
+    assert_eq!(c.iter().map(|x| x.0).collect::<Vec<_>>(), ["sphere", "plate", "torus", "none"]);
+}
+
+/// Cost per candidate at 200 and 300 samples (`--ignored --nocapture`).
+#[test]
+#[ignore]
+fn gw_cost_per_candidate() {
+    for m in [100usize, 200, 300] {
+        let (x, p) = random_space(m, 1.0, 5);
+        let (y, q) = random_space(m, 0.8, 6);
+        let mut times = Vec::new();
+        let mut last = None;
+        for _ in 0..5 {
+            let t = std::time::Instant::now();
+            let r = entropic_gw(&[x.as_ref()], &p, &[y.as_ref()], &q, &GwOptions::default());
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            last = Some(r);
+        }
+        times.sort_by(f64::total_cmp);
+        let r = last.unwrap();
+        println!(
+            "m = {m}: median {:.1} ms (min {:.1}), outer {}, sinkhorn {}",
+            times[2], times[0], r.outer_iterations, r.sinkhorn_iterations
+        );
+    }
+}
+
+#[test]
+#[ignore]
+fn gw_diagnostics() {
+    let (x, p) = random_space(60, 1.0, 1);
+    let (y, q) = random_space(50, 1.0, 2);
+    for eps in [0.03, 0.01, 0.003, 0.001] {
+        for outer in [5usize, 10, 30] {
+            let o = GwOptions { eps_rel: eps, outer_iterations: outer, ..GwOptions::default() };
+            let r = entropic_gw(&[x.as_ref()], &p, &[x.as_ref()], &p, &o);
+            let s = entropic_gw(&[x.as_ref()], &p, &[y.as_ref()], &q, &o);
+            let diag: f64 = (0..60).map(|i| r.plan[(i, i)]).sum();
+            println!("eps {eps} outer {outer}: xx {:.5} diag {diag:.3} xy {:.5} its {} {}", r.value, s.value, r.outer_iterations, r.sinkhorn_iterations);
+        }
+    }
+}
