@@ -14,6 +14,7 @@ pub mod mesh;
 pub mod pipeline;
 pub mod ranking;
 pub mod rerank;
+pub mod scale;
 pub mod signature;
 pub mod spectrum;
 

@@ -390,6 +390,10 @@ pub struct SignatureSpec {
     pub geodesic_sources: usize,
     /// Number of quantile intervals stored per distribution channel.
     pub sketch_quantiles: usize,
+    /// q5 hook: per-shape rescaling of the spectrum before kernels are evaluated
+    /// ([`crate::scale`]); omitted from the JSON (and key) when `None`.
+    #[serde(default, skip_serializing_if = "crate::scale::SpectrumScaling::is_none")]
+    pub spectrum_scaling: crate::scale::SpectrumScaling,
 }
 
 impl Default for SignatureSpec {
@@ -404,6 +408,7 @@ impl Default for SignatureSpec {
             lp_samples: 500,
             geodesic_sources: 200,
             sketch_quantiles: 1024,
+            spectrum_scaling: crate::scale::SpectrumScaling::None,
         }
     }
 }
@@ -499,6 +504,14 @@ pub struct Signature {
 /// does not match the mesh.
 pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Signature> {
     validate_spec(spec)?;
+    // q5 hook: scale selection by rescaling the spectrum (crate::scale).
+    if !spec.spectrum_scaling.is_none() {
+        let mut plain = spec.clone();
+        plain.spectrum_scaling = crate::scale::SpectrumScaling::None;
+        let mut sig = compute_signature(&spec.spectrum_scaling.apply(analysis), &plain)?;
+        sig.spec_key = spec.key();
+        return Ok(sig);
+    }
     let mesh = &analysis.mesh;
     let sp = &analysis.spectrum;
     let n = mesh.vertices.len();

@@ -150,6 +150,9 @@ pub struct RerankStats {
     pub per_query_ms: f64,
 }
 
+/// GW values of solved (unordered) pairs, per payload key and solver options.
+pub type PairCache = HashMap<String, HashMap<(usize, usize), f64>>;
+
 /// Re-ranks every query row of `dist` (n × n, row = query) with `stage`; see the module docs for
 /// the values written.
 pub fn rerank_matrix(
@@ -158,6 +161,7 @@ pub fn rerank_matrix(
     included: &[bool],
     payloads: &[Option<GwPayload>],
     stage: &RerankStage,
+    solved_pairs: &mut PairCache,
 ) -> (Vec<f64>, RerankStats) {
     let k = stage.shortlist_len();
     let s: &SgwStage = match stage {
@@ -177,8 +181,17 @@ pub fn rerank_matrix(
     }
     pairs.sort_unstable();
     pairs.dedup();
+    // Pairs already solved with the same payload and solver options (another stage of this
+    // run that differs only in K or fusion) are reused.
+    let ckey = format!(
+        "{}|{}",
+        s.payload.key(),
+        serde_json::to_string(&s.gw).unwrap_or_default()
+    );
+    let known = solved_pairs.entry(ckey.clone()).or_default();
+    let todo: Vec<(usize, usize)> = pairs.iter().copied().filter(|p| !known.contains_key(p)).collect();
     let t0 = Instant::now();
-    let solved: Vec<(f64, f64)> = pairs
+    let solved: Vec<(f64, f64)> = todo
         .par_iter()
         .map(|&(a, b)| {
             let t = Instant::now();
@@ -191,7 +204,10 @@ pub fn rerank_matrix(
         .collect();
     let wall_s = t0.elapsed().as_secs_f64();
     let cpu: f64 = solved.iter().map(|x| x.1).sum();
-    let map: HashMap<(usize, usize), f64> = pairs.iter().copied().zip(solved.iter().map(|x| x.0)).collect();
+    for (p, v) in todo.iter().zip(&solved) {
+        known.insert(*p, v.0);
+    }
+    let map = &*known;
     let mut out = vec![f64::NAN; n * n];
     for (qi, &q) in queries.iter().enumerate() {
         let order = &orders[qi];
@@ -207,7 +223,7 @@ pub fn rerank_matrix(
     }
     // Wall latency of the public entry point on a few queries.
     let mut lat = Vec::new();
-    for (qi, &q) in queries.iter().enumerate().take(8) {
+    for (qi, &q) in queries.iter().enumerate().take(if todo.is_empty() { 0 } else { 8 }) {
         let Some(qp) = &payloads[q] else { continue };
         let cands: Vec<super::Candidate<'_, usize>> = orders[qi]
             .iter()
@@ -223,9 +239,9 @@ pub fn rerank_matrix(
     (
         out,
         RerankStats {
-            pairs: pairs.len(),
+            pairs: todo.len(),
             wall_s,
-            per_candidate_ms: if pairs.is_empty() { 0.0 } else { 1e3 * cpu / pairs.len() as f64 },
+            per_candidate_ms: if todo.is_empty() { 0.0 } else { 1e3 * cpu / todo.len() as f64 },
             per_query_ms,
         },
     )
