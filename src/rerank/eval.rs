@@ -2,9 +2,9 @@
 //! configuration and evaluates the result as an extra configuration named `<config>+<STAGE>`.
 //!
 //! STAGE syntax: `none`, a JSON object / JSON file holding a [`RerankStage`], or the short form
-//! `sgw:K[:key=value]…` with keys `m` (samples, default 200), `t` (comma-separated times,
+//! `sgw:K[:key=value]…` with keys `m` (samples, default 100), `t` (comma-separated times,
 //! default 0.04), `metric` (`dist` | `kernel`), `rule` (`abs` | `lambda1`: `t = τ/λ₁`),
-//! `eps` (relative ε, default 0.01), `outer` (outer iterations, default 10), `blend` (weight
+//! `eps` (relative ε, default 0.003), `outer` (outer iterations, default 5), `blend` (weight
 //! `w` of the first-stage rank in [`Fusion::RankBlend`]; absent: GW alone).
 //!
 //! Payloads are cached under `<cache>/gw/` keyed by the analysis key and

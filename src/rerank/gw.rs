@@ -47,8 +47,8 @@ pub struct GwOptions {
 impl Default for GwOptions {
     fn default() -> Self {
         Self {
-            eps_rel: 0.01,
-            outer_iterations: 10,
+            eps_rel: 0.003,
+            outer_iterations: 5,
             outer_tolerance: 1e-4,
             sinkhorn_iterations: 300,
             sinkhorn_tolerance: 1e-6,

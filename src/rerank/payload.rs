@@ -59,7 +59,7 @@ pub struct PayloadSpec {
 impl Default for PayloadSpec {
     fn default() -> Self {
         Self {
-            samples: 200,
+            samples: 100,
             times: vec![0.04],
             metric: GwMetric::Diffusion,
             time_rule: TimeRule::Absolute,

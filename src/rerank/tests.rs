@@ -249,3 +249,54 @@ fn gw_diagnostics() {
         }
     }
 }
+
+/// Latency of one search of a 10 000-shape index: first-stage scan (`ranking::rank`, default
+/// configuration) + SGW re-ranking of the top 50 (`--ignored --nocapture`).
+#[test]
+#[ignore]
+fn search_latency_10k_with_rerank() {
+    use crate::ranking::{calibrate, default_config, prepare_for_ranking, rank};
+    use crate::signature::compute_signature;
+    let cfg = default_config();
+    let mut opts = AnalyzeOptions::default();
+    opts.eigen.k = 100;
+    let meshes = [
+        generate::bumpy_torus(60, 30),
+        generate::bumpy_torus(70, 28),
+        generate::bumpy_sphere(4, 0.3),
+        generate::bumpy_sphere(4, 0.2),
+    ];
+    let spec = PayloadSpec::default();
+    let mut sigs = Vec::new();
+    let mut pays = Vec::new();
+    for m in &meshes {
+        let a = analyze(m, &opts).unwrap();
+        sigs.push(compute_signature(&a, &cfg.signature).unwrap());
+        pays.push(compute_payload(&a, &spec).unwrap());
+    }
+    let cal = calibrate(&sigs.iter().collect::<Vec<_>>(), &cfg.signature, 1);
+    let prepared: Vec<_> = (0..10_000).map(|i| prepare_for_ranking(&sigs[i % 4], &cal)).collect();
+    let stage = RerankStage::SpectralGw(SgwStage::default());
+    let mut scan = Vec::new();
+    let mut rr = Vec::new();
+    for q in 0..5 {
+        let t = std::time::Instant::now();
+        let hits = rank(&prepared[q], &prepared, &cfg.query);
+        scan.push(t.elapsed().as_secs_f64() * 1e3);
+        let cands: Vec<Candidate<'_, usize>> = hits
+            .iter()
+            .take(stage.shortlist_len())
+            .map(|&(i, s)| Candidate { id: i, score: s, payload: Some(&pays[i % 4]) })
+            .collect();
+        let t = std::time::Instant::now();
+        let out = apply(&stage, &pays[q % 4], &cands);
+        rr.push(t.elapsed().as_secs_f64() * 1e3);
+        assert_eq!(out.len(), 50);
+    }
+    scan.sort_by(f64::total_cmp);
+    rr.sort_by(f64::total_cmp);
+    println!(
+        "10k scan: median {:.1} ms (min {:.1}); rerank top 50 (m = {}): median {:.0} ms (min {:.0}); threads {}",
+        scan[2], scan[0], spec.samples, rr[2], rr[0], rayon::current_num_threads()
+    );
+}
