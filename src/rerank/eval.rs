@@ -3,7 +3,7 @@
 //!
 //! STAGE syntax: `none`, a JSON object / JSON file holding a [`RerankStage`], or the short form
 //! `sgw:K[:key=value]…` with keys `m` (samples, default 100), `t` (comma-separated times,
-//! default 0.04), `metric` (`dist` | `kernel`), `rule` (`abs` | `lambda1`: `t = τ/λ₁`),
+//! default 0.016,0.04,0.1), `metric` (`dist` | `kernel`), `rule` (`abs` | `lambda1`: `t = τ/λ₁`),
 //! `eps` (relative ε, default 0.003), `outer` (outer iterations, default 5), `blend` (weight
 //! `w` of the first-stage rank in [`Fusion::RankBlend`]; absent: GW alone).
 //!

@@ -60,7 +60,7 @@ impl Default for PayloadSpec {
     fn default() -> Self {
         Self {
             samples: 100,
-            times: vec![0.04],
+            times: vec![0.016, 0.04, 0.1],
             metric: GwMetric::Diffusion,
             time_rule: TimeRule::Absolute,
         }

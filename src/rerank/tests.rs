@@ -171,7 +171,14 @@ fn payload_round_trip_and_malformed_input() {
     let st = RerankStage::SpectralGw(SgwStage::default());
     let j = serde_json::to_string(&st).unwrap();
     assert_eq!(serde_json::from_str::<RerankStage>(&j).unwrap(), st);
-    assert_eq!(eval::parse_stage("sgw:50").unwrap(), st);
+    assert_eq!(eval::parse_stage("sgw:20").unwrap(), st);
+    match eval::parse_stage("sgw:50:m=150:t=0.04:eps=0.01:blend=0.5").unwrap() {
+        RerankStage::SpectralGw(s) => {
+            assert_eq!((s.shortlist, s.payload.samples, s.payload.times.clone()), (50, 150, vec![0.04]));
+            assert_eq!((s.gw.eps_rel, s.fusion), (0.01, Fusion::RankBlend { weight: 0.5 }));
+        }
+        other => panic!("{other:?}"),
+    }
     assert!(eval::parse_stage("sgw:x").is_err());
 }
 
@@ -276,7 +283,8 @@ fn search_latency_10k_with_rerank() {
     }
     let cal = calibrate(&sigs.iter().collect::<Vec<_>>(), &cfg.signature, 1);
     let prepared: Vec<_> = (0..10_000).map(|i| prepare_for_ranking(&sigs[i % 4], &cal)).collect();
-    let stage = RerankStage::SpectralGw(SgwStage::default());
+    let stage = RerankStage::SpectralGw(SgwStage { shortlist: 50, ..SgwStage::default() });
+    let stage = if std::env::var("SGW_K20").is_ok() { RerankStage::SpectralGw(SgwStage::default()) } else { stage };
     let mut scan = Vec::new();
     let mut rr = Vec::new();
     for q in 0..5 {
@@ -291,12 +299,12 @@ fn search_latency_10k_with_rerank() {
         let t = std::time::Instant::now();
         let out = apply(&stage, &pays[q % 4], &cands);
         rr.push(t.elapsed().as_secs_f64() * 1e3);
-        assert_eq!(out.len(), 50);
+        assert_eq!(out.len(), stage.shortlist_len());
     }
     scan.sort_by(f64::total_cmp);
     rr.sort_by(f64::total_cmp);
     println!(
-        "10k scan: median {:.1} ms (min {:.1}); rerank top 50 (m = {}): median {:.0} ms (min {:.0}); threads {}",
-        scan[2], scan[0], spec.samples, rr[2], rr[0], rayon::current_num_threads()
+        "10k scan: median {:.1} ms (min {:.1}); rerank top {} (m = {}, t = {:?}): median {:.0} ms (min {:.0}); threads {}",
+        scan[2], scan[0], stage.shortlist_len(), spec.samples, spec.times, rr[2], rr[0], rayon::current_num_threads()
     );
 }
