@@ -4,7 +4,11 @@ use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
 #[derive(Parser)]
-#[command(name = "shapeseek", version, about = "Non-rigid 3D shape retrieval with spectral shape distances")]
+#[command(
+    name = "shapeseek",
+    version,
+    about = "Non-rigid 3D shape retrieval with spectral shape distances"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
