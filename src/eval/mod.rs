@@ -79,7 +79,8 @@ pub struct EvalArgs {
     /// REFERENCE.md of the parent folder when it describes this manifest's split.
     #[arg(long)]
     pub reference: Option<PathBuf>,
-    /// Also print the per-strength mAP table to stdout.
+    /// Also print the per-strength mAP table of every configuration (the report has it for the
+    /// configurations of REFERENCE.md's per-strength table and `default`).
     #[arg(long)]
     pub per_strength: bool,
     /// No progress output.
@@ -1075,6 +1076,12 @@ fn markdown_report(
         let _ = writeln!(s, "Reference figures from `{}`.\n", p.display());
     }
     s.push_str(&report::reference_shaped_tables(results, reference));
+    s.push_str(&report::roc_summary_table(results, reference));
+    let _ = writeln!(
+        s,
+        "## mAP per strength (%)\n\n{}",
+        report::per_strength_table(&report::per_strength_selection(results))
+    );
     let _ = writeln!(s, "## Time per stage\n");
     let _ = writeln!(s, "| stage | seconds |\n|---|---|");
     for (name, v) in [

@@ -504,6 +504,71 @@ pub fn reference_shaped_tables(results: &[ConfigResult], reference: Option<&Refe
     s
 }
 
+/// The ROC summary of the Table 2 configurations that were run (like REFERENCE.md's): mean
+/// per-query AUC and pooled EER of all queries, with the reference's side by side.
+pub fn roc_summary_table(results: &[ConfigResult], reference: Option<&Reference>) -> String {
+    let t2 = &reference_tables()[1].1;
+    let rows: Vec<(&String, &ConfigResult)> = t2
+        .iter()
+        .filter_map(|(lab, name)| results.iter().find(|r| &r.name == name).map(|r| (lab, r)))
+        .collect();
+    if rows.is_empty() {
+        return String::new();
+    }
+    let mut s = String::from(
+        "## ROC summary (Table 2 configurations, all queries)\n\nMean per-query ROC AUC (%) / equal error rate (%) of the pooled query-vs-others distances",
+    );
+    s.push_str(if reference.is_some() {
+        "; ours / reference.\n\n"
+    } else {
+        ".\n\n"
+    });
+    s.push_str("| config | AUC All | EER All |\n|---|---|---|\n");
+    for (lab, r) in rows {
+        let all = r.eval.group(ALL);
+        let cell = |ours: Option<f64>, table: Option<&Table>| match table
+            .and_then(|t| lookup(t, &r.name, ALL))
+        {
+            Some(v) => format!("{} / {:.2}", f(ours), 100.0 * v),
+            None => f(ours),
+        };
+        let _ = writeln!(
+            s,
+            "| {lab} (`{}`) | {} | {} |",
+            r.name,
+            cell(all.and_then(|a| a.auc), reference.map(|x| &x.auc)),
+            cell(all.and_then(|a| a.eer), reference.map(|x| &x.eer)),
+        );
+    }
+    s.push('\n');
+    s
+}
+
+/// The configurations of REFERENCE.md's per-strength table that were run, plus `default`; all
+/// configurations when none of them was.
+pub fn per_strength_selection(results: &[ConfigResult]) -> Vec<ConfigResult> {
+    const NAMES: [&str; 9] = [
+        "default",
+        "Heat-L2-nL1-Sum2[t=0.016..0.1]",
+        "Heat-L2-nL1-Single[t=0.016]",
+        "Heat-L2-nL1-Single[t=0.1]",
+        "CT-L2-nL1",
+        "ShapeDNA[50]-L2",
+        "CT-L2-L2",
+        "D2-nL1",
+        "Geo-nL1",
+    ];
+    let picked: Vec<ConfigResult> = NAMES
+        .iter()
+        .filter_map(|n| results.iter().find(|r| r.name == *n).cloned())
+        .collect();
+    if picked.is_empty() {
+        results.to_vec()
+    } else {
+        picked
+    }
+}
+
 /// Per-strength mAP table (rows `transform@strength`, columns configurations).
 pub fn per_strength_table(results: &[ConfigResult]) -> String {
     let mut keys: Vec<&String> = results
