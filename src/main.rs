@@ -28,6 +28,8 @@ struct Cli {
 enum Command {
     /// Read a mesh (or generate one), prepare it and print its Laplace–Beltrami spectrum.
     Spectrum(SpectrumArgs),
+    /// Evaluate retrieval on a benchmark manifest (mAP per transformation, ROC, PR).
+    Eval(shapeseek::eval::EvalArgs),
     /// Performance benchmarks (spectrum: Laplacian + factorisation + eigensolve, vs SciPy).
     Bench(bench::BenchArgs),
 }
@@ -245,6 +247,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
         Command::Spectrum(a) => run_spectrum(a),
+        Command::Eval(a) => shapeseek::eval::run(a),
         Command::Bench(a) => bench::run(a),
     };
     match result {
