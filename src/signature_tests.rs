@@ -17,6 +17,7 @@ fn analysis_of(mesh: &Mesh, k: usize, normalize_area: bool) -> Analysis {
             k,
             ..EigenOptions::default()
         },
+        ..AnalyzeOptions::default()
     };
     analyze(mesh, &opts).expect("analysis")
 }
@@ -705,6 +706,7 @@ fn two_components_have_two_zero_modes() {
             k: 30,
             ..EigenOptions::default()
         },
+        ..AnalyzeOptions::default()
     };
     let a = analyze(&mesh, &opts).expect("analysis");
     let zt = ZERO_MODE_TOLERANCE * 4.0 * std::f64::consts::PI;
