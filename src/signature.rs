@@ -24,6 +24,10 @@
 //!   against 1 200 nodes on a 2 562-vertex shape (`lp_quadrature_error`, ignored): nL1 0.030–0.035
 //!   with 300 nodes, 0.016 with 500, 0.007–0.009 with 800.
 //!
+//! * Not implemented: the scale-invariant kernel of eq. 21. Its log-time derivative and Fourier
+//!   modulus need the kernel on a dense log-scale grid per pair, and here every shape is already
+//!   normalised to unit area; the commute-time kernel gives exact scale invariance (tested).
+//!
 //! # Pair quadrature (eq. 10)
 //!
 //! F is the push-forward of `μ × μ`. [`PairQuadrature::AllVertices`] uses every ordered vertex
