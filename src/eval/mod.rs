@@ -593,16 +593,30 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         .entries
         .par_iter()
         .map(|e| {
-            let r = process_shape(
-                &e.resolved,
-                &specs,
-                &spec_keys,
-                &opts,
-                &opts_json,
-                &limits,
-                &cache,
-                &clock,
-            );
+            // A panic in the library on one mesh is reported for that row like an error.
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                process_shape(
+                    &e.resolved,
+                    &specs,
+                    &spec_keys,
+                    &opts,
+                    &opts_json,
+                    &limits,
+                    &cache,
+                    &clock,
+                )
+            }))
+            .unwrap_or_else(|p| {
+                let msg = p
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| p.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".into());
+                Err((
+                    "internal.panic".to_string(),
+                    format!("panic while processing: {msg}"),
+                ))
+            });
             progress.tick(&e.id);
             r
         })
