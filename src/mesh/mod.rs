@@ -5,6 +5,8 @@
 
 pub mod generate;
 pub mod prepare;
+pub mod read;
+pub mod write;
 
 use serde::{Deserialize, Serialize};
 

@@ -1,0 +1,527 @@
+//! glTF 2.0 reader: `.gltf` JSON whose buffers are embedded as base64 `data:` URIs, and `.glb`.
+//!
+//! The JSON is parsed and validated by the `gltf` crate (without its `import` feature); the GLB
+//! container and the buffers are resolved here, by hand: the GLB header and chunk lengths are
+//! checked against the file (errors give byte offsets), buffers are the GLB `BIN` chunk or a
+//! base64 `data:` URI, and any other URI (file path, http...) is refused with
+//! [`Error::ExternalReference`] (images are never loaded, so their URIs do not matter).
+//!
+//! Geometry: every `TRIANGLES`, `TRIANGLE_STRIP` and `TRIANGLE_FAN` primitive of the meshes
+//! reachable from the default scene (else scene 0, else every root node), indexed or not, with
+//! the node transforms (matrix or TRS, composed down the hierarchy) applied in f64 and the
+//! winding flipped under mirroring transforms. `POINTS`/`LINES*` primitives are skipped. Positions
+//! must be `VEC3`/`FLOAT`; indices `u8`/`u16`/`u32`; byte strides honoured; sparse accessors and
+//! accessors without a buffer view are refused. A mesh instanced by several nodes is added once per
+//! instance. In `TRIANGLES` mode a trailing index count that is not a multiple of 3 is ignored.
+//! Positions are f32 in glTF: they are widened exactly to f64.
+
+use super::ReadLimits;
+use crate::error::{Error, Location, Result};
+use crate::mesh::Mesh;
+use base64::Engine;
+use gltf::accessor::{DataType, Dimensions};
+use gltf::mesh::Mode;
+
+const F: &str = "glTF";
+const CHUNK_JSON: u32 = 0x4E4F_534A;
+const CHUNK_BIN: u32 = 0x004E_4942;
+/// Bound on the node hierarchy depth (guards against cycles).
+const MAX_DEPTH: usize = 256;
+/// Bound on node visits (guards against exponential fan-out of shared children).
+const MAX_VISITS: usize = 1 << 20;
+
+fn perr(msg: impl Into<String>) -> Error {
+    Error::parse(F, None, msg)
+}
+
+fn berr(at: usize, msg: impl Into<String>) -> Error {
+    Error::parse(F, Some(Location::Byte(at)), msg)
+}
+
+fn u32_at(b: &[u8], at: usize) -> Option<u32> {
+    b.get(at..at + 4)
+        .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]))
+}
+
+/// Splits a GLB file into its JSON chunk and optional BIN chunk, checking every length.
+fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>)> {
+    if bytes.len() < 12 {
+        return Err(berr(bytes.len(), "GLB header truncated (12 bytes needed)"));
+    }
+    let version = u32_at(bytes, 4).unwrap_or(0);
+    if version != 2 {
+        return Err(berr(
+            4,
+            format!("unsupported GLB version {version} (2 expected)"),
+        ));
+    }
+    let length = u32_at(bytes, 8).unwrap_or(0) as usize;
+    if length != bytes.len() {
+        return Err(berr(
+            8,
+            format!(
+                "GLB length field says {length} bytes, the file has {}",
+                bytes.len()
+            ),
+        ));
+    }
+    let mut json = None;
+    let mut bin = None;
+    let mut at = 12;
+    while at < bytes.len() {
+        let (len, ty) = match (u32_at(bytes, at), u32_at(bytes, at + 4)) {
+            (Some(l), Some(t)) => (l as usize, t),
+            _ => return Err(berr(at, "GLB chunk header truncated")),
+        };
+        let start = at + 8;
+        let data = start
+            .checked_add(len)
+            .and_then(|end| bytes.get(start..end))
+            .ok_or_else(|| {
+                berr(
+                    at,
+                    format!("GLB chunk of {len} bytes runs past the end of the file"),
+                )
+            })?;
+        match ty {
+            CHUNK_JSON if json.is_none() && at == 12 => json = Some(data),
+            CHUNK_BIN if bin.is_none() && json.is_some() => bin = Some(data),
+            CHUNK_JSON | CHUNK_BIN => return Err(berr(at, "misplaced or repeated GLB chunk")),
+            _ => {} // unknown chunk types are skipped, as the specification requires
+        }
+        // Chunks are 4-byte aligned.
+        at = start + len.div_ceil(4) * 4;
+    }
+    let json = json.ok_or_else(|| berr(12, "GLB has no JSON chunk"))?;
+    Ok((json, bin))
+}
+
+fn decode_data_uri(uri: &str, index: usize) -> Result<Vec<u8>> {
+    let (meta, payload) = uri
+        .split_once(',')
+        .ok_or_else(|| perr(format!("buffer {index}: malformed data URI")))?;
+    if !meta.ends_with(";base64") {
+        return Err(perr(format!("buffer {index}: data URI is not base64")));
+    }
+    base64::engine::general_purpose::STANDARD
+        .decode(payload.trim())
+        .map_err(|e| perr(format!("buffer {index}: bad base64: {e}")))
+}
+
+type Mat = [[f64; 4]; 4]; // column-major, m[col][row]
+
+fn mul(a: &Mat, b: &Mat) -> Mat {
+    let mut m = [[0.0; 4]; 4];
+    for (c, col) in m.iter_mut().enumerate() {
+        for (r, v) in col.iter_mut().enumerate() {
+            *v = (0..4).map(|k| a[k][r] * b[c][k]).sum();
+        }
+    }
+    m
+}
+
+fn apply(m: &Mat, p: [f32; 3]) -> [f64; 3] {
+    let [x, y, z] = p.map(f64::from);
+    let mut out = [0.0; 3];
+    for (r, o) in out.iter_mut().enumerate() {
+        *o = m[0][r] * x + m[1][r] * y + m[2][r] * z + m[3][r];
+    }
+    out
+}
+
+fn det3(m: &Mat) -> f64 {
+    m[0][0] * (m[1][1] * m[2][2] - m[2][1] * m[1][2])
+        - m[1][0] * (m[0][1] * m[2][2] - m[2][1] * m[0][2])
+        + m[2][0] * (m[0][1] * m[1][2] - m[1][1] * m[0][2])
+}
+
+const IDENTITY: Mat = [
+    [1.0, 0.0, 0.0, 0.0],
+    [0.0, 1.0, 0.0, 0.0],
+    [0.0, 0.0, 1.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+];
+
+/// The bytes of an accessor's elements: `(data, first element offset, stride)`, all checked.
+fn accessor_bytes<'b>(
+    acc: &gltf::Accessor,
+    buffers: &'b [Vec<u8>],
+    bin: Option<&'b [u8]>,
+    what: &str,
+) -> Result<(&'b [u8], usize, usize)> {
+    let name = format!("{what} accessor {}", acc.index());
+    if acc.sparse().is_some() {
+        return Err(perr(format!("{name}: sparse accessors are not supported")));
+    }
+    let view = acc.view().ok_or_else(|| {
+        perr(format!(
+            "{name}: accessors without a bufferView are not supported"
+        ))
+    })?;
+    let buffer = view.buffer();
+    let data: &[u8] = match buffer.source() {
+        gltf::buffer::Source::Bin => {
+            bin.ok_or_else(|| perr(format!("buffer {}: no GLB BIN chunk", buffer.index())))?
+        }
+        gltf::buffer::Source::Uri(_) => buffers
+            .get(buffer.index())
+            .map(Vec::as_slice)
+            .ok_or_else(|| perr(format!("buffer {} missing", buffer.index())))?,
+    };
+    let elem = acc.size();
+    let stride = view.stride().unwrap_or(elem);
+    if stride < elem {
+        return Err(perr(format!(
+            "{name}: byteStride {stride} smaller than the element size {elem}"
+        )));
+    }
+    let view_end = view
+        .offset()
+        .checked_add(view.length())
+        .filter(|&e| e <= data.len())
+        .ok_or_else(|| {
+            perr(format!(
+                "bufferView {} lies outside its buffer",
+                view.index()
+            ))
+        })?;
+    let start = view.offset().saturating_add(acc.offset());
+    let count = acc.count();
+    if count > 0 {
+        let need = (count - 1)
+            .checked_mul(stride)
+            .and_then(|x| x.checked_add(elem))
+            .and_then(|x| x.checked_add(start));
+        if need.is_none_or(|end| end > view_end) {
+            return Err(perr(format!(
+                "{name}: {count} elements do not fit in bufferView {}",
+                view.index()
+            )));
+        }
+    }
+    Ok((data, start, stride))
+}
+
+fn read_positions(
+    acc: &gltf::Accessor,
+    buffers: &[Vec<u8>],
+    bin: Option<&[u8]>,
+) -> Result<Vec<[f32; 3]>> {
+    if acc.dimensions() != Dimensions::Vec3 || acc.data_type() != DataType::F32 {
+        return Err(perr(format!(
+            "POSITION accessor {} must be VEC3 of FLOAT",
+            acc.index()
+        )));
+    }
+    let (data, start, stride) = accessor_bytes(acc, buffers, bin, "POSITION")?;
+    let f = |o: usize| f32::from_le_bytes([data[o], data[o + 1], data[o + 2], data[o + 3]]);
+    // Bounds were checked by accessor_bytes; count is bounded by the data size.
+    Ok((0..acc.count())
+        .map(|i| {
+            let o = start + i * stride;
+            [f(o), f(o + 4), f(o + 8)]
+        })
+        .collect())
+}
+
+fn read_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>], bin: Option<&[u8]>) -> Result<Vec<u32>> {
+    if acc.dimensions() != Dimensions::Scalar {
+        return Err(perr(format!(
+            "index accessor {} must be SCALAR",
+            acc.index()
+        )));
+    }
+    let dt = acc.data_type();
+    if !matches!(dt, DataType::U8 | DataType::U16 | DataType::U32) {
+        return Err(perr(format!(
+            "index accessor {} has component type {dt:?} (u8, u16 or u32 expected)",
+            acc.index()
+        )));
+    }
+    let (data, start, stride) = accessor_bytes(acc, buffers, bin, "index")?;
+    Ok((0..acc.count())
+        .map(|i| {
+            let o = start + i * stride;
+            match dt {
+                DataType::U8 => data[o] as u32,
+                DataType::U16 => u16::from_le_bytes([data[o], data[o + 1]]) as u32,
+                _ => u32::from_le_bytes([data[o], data[o + 1], data[o + 2], data[o + 3]]),
+            }
+        })
+        .collect())
+}
+
+/// Deserializes and validates the glTF JSON.
+///
+/// gltf-json 1.4.1's validator indexes `root.accessors[...]` with the `POSITION` attribute before
+/// checking that index (a panic on hostile input, found by the fuzz test), so attribute indices
+/// are checked here first; the validator itself then checks every other reference.
+fn parse_document(json: &[u8]) -> Result<gltf::Document> {
+    let root: gltf::json::Root = gltf::json::deserialize::from_slice(json)
+        .map_err(|e| perr(format!("invalid glTF JSON: {e}")))?;
+    let n_acc = root.accessors.len();
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            let targets = prim
+                .targets
+                .iter()
+                .flatten()
+                .flat_map(|t| [t.positions, t.normals, t.tangents].into_iter().flatten());
+            let bad = prim
+                .attributes
+                .values()
+                .copied()
+                .chain(prim.indices)
+                .chain(targets)
+                .find(|i| i.value() >= n_acc);
+            if let Some(i) = bad {
+                return Err(perr(format!(
+                    "mesh {m} primitive {p}: accessor {} does not exist ({n_acc} accessors)",
+                    i.value()
+                )));
+            }
+        }
+    }
+    gltf::Document::from_json(root).map_err(|e| perr(format!("invalid glTF document: {e}")))
+}
+
+pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
+    let (json, bin) = if bytes.starts_with(b"glTF") {
+        split_glb(bytes)?
+    } else {
+        (bytes, None)
+    };
+    let doc = parse_document(json)?;
+
+    // Resolve the buffers (BIN chunk or embedded data URI; anything else is refused).
+    let mut buffers: Vec<Vec<u8>> = Vec::new();
+    for b in doc.buffers() {
+        let data = match b.source() {
+            gltf::buffer::Source::Bin => {
+                let bin = bin.ok_or_else(|| {
+                    perr(format!(
+                        "buffer {} has no URI and there is no GLB BIN chunk",
+                        b.index()
+                    ))
+                })?;
+                if bin.len() < b.length() {
+                    return Err(perr(format!(
+                        "buffer {}: byteLength {} exceeds the BIN chunk ({} bytes)",
+                        b.index(),
+                        b.length(),
+                        bin.len()
+                    )));
+                }
+                Vec::new() // read from `bin` directly
+            }
+            gltf::buffer::Source::Uri(uri) if uri.trim_start().starts_with("data:") => {
+                let d = decode_data_uri(uri, b.index())?;
+                if d.len() < b.length() {
+                    return Err(perr(format!(
+                        "buffer {}: byteLength {} exceeds the decoded data ({} bytes)",
+                        b.index(),
+                        b.length(),
+                        d.len()
+                    )));
+                }
+                d
+            }
+            gltf::buffer::Source::Uri(uri) => {
+                return Err(Error::ExternalReference(format!(
+                    "buffer {} refers to {uri:?}",
+                    b.index()
+                )))
+            }
+        };
+        buffers.push(data);
+    }
+
+    let roots: Vec<gltf::Node> = match doc.default_scene().or_else(|| doc.scenes().next()) {
+        Some(scene) => scene.nodes().collect(),
+        None => {
+            let mut is_child = vec![false; doc.nodes().len()];
+            for n in doc.nodes() {
+                for c in n.children() {
+                    if let Some(x) = is_child.get_mut(c.index()) {
+                        *x = true;
+                    }
+                }
+            }
+            doc.nodes().filter(|n| !is_child[n.index()]).collect()
+        }
+    };
+
+    let mut vertices: Vec<[f64; 3]> = Vec::new();
+    let mut faces: Vec<[u32; 3]> = Vec::new();
+    let mut stack: Vec<(gltf::Node, Mat, usize)> =
+        roots.into_iter().rev().map(|n| (n, IDENTITY, 0)).collect();
+    let mut visits = 0usize;
+    while let Some((node, parent, depth)) = stack.pop() {
+        visits += 1;
+        if visits > MAX_VISITS {
+            return Err(perr(format!(
+                "more than {MAX_VISITS} node visits (shared children or cycle)"
+            )));
+        }
+        if depth > MAX_DEPTH {
+            return Err(perr(format!(
+                "node hierarchy deeper than {MAX_DEPTH} (cycle at node {}?)",
+                node.index()
+            )));
+        }
+        let local = node.transform().matrix().map(|c| c.map(f64::from));
+        let world = mul(&parent, &local);
+        for c in node.children().collect::<Vec<_>>().into_iter().rev() {
+            stack.push((c, world, depth + 1));
+        }
+        let Some(mesh) = node.mesh() else { continue };
+        let flip = det3(&world) < 0.0;
+        for prim in mesh.primitives() {
+            let mode = prim.mode();
+            if !matches!(
+                mode,
+                Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+            ) {
+                continue;
+            }
+            let Some(pos_acc) = prim.get(&gltf::Semantic::Positions) else {
+                continue;
+            };
+            let np = pos_acc.count();
+            limits.check_vertices(vertices.len().saturating_add(np))?;
+            let n_idx = prim.indices().map_or(np, |a| a.count());
+            let n_tri = match mode {
+                Mode::Triangles => n_idx / 3,
+                _ => n_idx.saturating_sub(2),
+            };
+            limits.check_faces(faces.len().saturating_add(n_tri))?;
+            let positions = read_positions(&pos_acc, &buffers, bin)?;
+            let indices: Vec<u32> = match prim.indices() {
+                Some(acc) => {
+                    let idx = read_indices(&acc, &buffers, bin)?;
+                    if let Some(&bad) = idx.iter().find(|&&i| i as usize >= np) {
+                        return Err(perr(format!(
+                            "mesh {} primitive {}: index {bad} out of range ({np} positions)",
+                            mesh.index(),
+                            prim.index()
+                        )));
+                    }
+                    idx
+                }
+                None => (0..np as u32).collect(),
+            };
+            let base = vertices.len() as u32;
+            vertices.extend(positions.iter().map(|&p| apply(&world, p)));
+            let mut push = |a: u32, b: u32, c: u32| {
+                let t = if flip { [a, c, b] } else { [a, b, c] };
+                faces.push(t.map(|i| base + i));
+            };
+            match mode {
+                Mode::Triangles => {
+                    for t in indices.chunks_exact(3) {
+                        push(t[0], t[1], t[2]);
+                    }
+                }
+                Mode::TriangleStrip => {
+                    for i in 0..indices.len().saturating_sub(2) {
+                        if i % 2 == 0 {
+                            push(indices[i], indices[i + 1], indices[i + 2]);
+                        } else {
+                            push(indices[i + 1], indices[i], indices[i + 2]);
+                        }
+                    }
+                }
+                _ => {
+                    for i in 1..indices.len().saturating_sub(1) {
+                        push(indices[0], indices[i], indices[i + 1]);
+                    }
+                }
+            }
+        }
+    }
+    Ok(Mesh::new(vertices, faces))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn chunk(ty: &[u8; 4], data: &[u8]) -> Vec<u8> {
+        let mut c = (data.len() as u32).to_le_bytes().to_vec();
+        c.extend_from_slice(ty);
+        c.extend_from_slice(data);
+        c
+    }
+
+    fn glb(chunks: &[Vec<u8>]) -> Vec<u8> {
+        let body: Vec<u8> = chunks.concat();
+        let mut g = b"glTF".to_vec();
+        g.extend(2u32.to_le_bytes());
+        g.extend(((12 + body.len()) as u32).to_le_bytes());
+        g.extend(body);
+        g
+    }
+
+    #[test]
+    fn glb_chunks_unknown_ones_skipped() {
+        let g = glb(&[
+            chunk(b"JSON", b"{}  "),
+            chunk(b"BIN\0", &[1, 2, 3, 4]),
+            chunk(b"XTRA", &[9; 8]),
+        ]);
+        let (json, bin) = split_glb(&g).unwrap();
+        assert_eq!(json, b"{}  ");
+        assert_eq!(bin, Some(&[1u8, 2, 3, 4][..]));
+    }
+
+    #[test]
+    fn glb_chunk_errors_have_offsets() {
+        let g = glb(&[chunk(b"BIN\0", &[0; 4])]);
+        assert!(matches!(
+            split_glb(&g),
+            Err(Error::Parse {
+                location: Some(Location::Byte(12)),
+                ..
+            })
+        ));
+        let g = glb(&[chunk(b"JSON", b"{}  "), chunk(b"JSON", b"{}  ")]);
+        assert!(matches!(
+            split_glb(&g),
+            Err(Error::Parse {
+                location: Some(Location::Byte(24)),
+                ..
+            })
+        ));
+        let mut g = glb(&[chunk(b"JSON", b"{}  ")]);
+        g.extend([0, 0, 0]); // dangling partial chunk header
+        let n = g.len() as u32;
+        g[8..12].copy_from_slice(&n.to_le_bytes());
+        assert!(matches!(
+            split_glb(&g),
+            Err(Error::Parse {
+                location: Some(Location::Byte(24)),
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn matrices_compose_column_major() {
+        let t: Mat = [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [1.0, 2.0, 3.0, 1.0],
+        ];
+        let s: Mat = [
+            [2.0, 0.0, 0.0, 0.0],
+            [0.0, 2.0, 0.0, 0.0],
+            [0.0, 0.0, 2.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        // Scale first, then translate.
+        assert_eq!(apply(&mul(&t, &s), [1.0, 1.0, 1.0]), [3.0, 4.0, 5.0]);
+        assert_eq!(apply(&mul(&s, &t), [1.0, 1.0, 1.0]), [4.0, 6.0, 8.0]);
+        assert!(det3(&s) > 0.0);
+    }
+}
