@@ -514,6 +514,21 @@ fn ply_malformed() {
     .unwrap_err();
     assert_parse(&e, "PLY", Some(3), false);
     assert!(e.to_string().contains("more than the data holds"), "{e}");
+    // Absurd list lengths: refused against the data size before looping.
+    let h = ply_ascii_header("3", "2");
+    for n in [
+        "100000000000000000000",
+        "18446744073709551615",
+        "1e300",
+        "4294967295",
+    ] {
+        let e = read(
+            format!("{h}0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n{n} 0 1 2\n").as_bytes(),
+            None,
+        )
+        .unwrap_err();
+        assert_eq!(e.code(), "mesh.parse", "{n}: {e}");
+    }
     let h = ply_ascii_header("3", "4000000000");
     assert_eq!(
         read(format!("{h}0 0 0\n").as_bytes(), None)

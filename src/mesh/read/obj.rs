@@ -90,7 +90,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                         format!("face with {n} vertices (at least 3 needed)"),
                     ));
                 }
-                triangles += n - 2;
+                triangles = triangles.saturating_add(n - 2);
                 limits.check_faces(triangles)?;
                 polys.push((start, ln));
             }

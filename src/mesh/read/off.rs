@@ -119,7 +119,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
             }
             poly.push(i as u32);
         }
-        limits.check_faces(faces.len() + n - 2)?;
+        limits.check_faces(faces.len().saturating_add(n - 2))?;
         triangulate(&poly, &vertices, &mut faces);
     }
     Ok(Mesh::new(vertices, faces))

@@ -192,7 +192,13 @@ impl Body<'_> {
             return Err(Error::parse(F, Some(loc), format!("bad list length {v}")));
         }
         let n = v as usize;
-        if self.is_binary() && n.saturating_mul(item.size()) > self.remaining() {
+        // Binary: n items need n·size bytes; ASCII: n tokens (remaining() bounds the tokens).
+        let need = if self.is_binary() {
+            n.saturating_mul(item.size())
+        } else {
+            n
+        };
+        if need > self.remaining() {
             return Err(self.err(format!("list of {n} items runs past the end of the data")));
         }
         Ok(n)
@@ -467,7 +473,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                                         format!("face with {n} vertices (at least 3 needed)"),
                                     ));
                                 }
-                                triangles += n - 2;
+                                triangles = triangles.saturating_add(n - 2);
                                 limits.check_faces(triangles)?;
                                 let start = flat.len();
                                 for _ in 0..n {
