@@ -5,11 +5,14 @@
 //! lumped mass) → [`eigen`] (k smallest generalized eigenpairs) → [`spectrum::Spectrum`]. The core
 //! is pure synchronous Rust: no HTTP, no storage.
 
+pub mod baseline;
 pub mod eigen;
 pub mod error;
 pub mod laplace;
 pub mod mesh;
 pub mod pipeline;
+pub mod ranking;
+pub mod signature;
 pub mod spectrum;
 
 pub use error::{Error, Result};

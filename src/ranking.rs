@@ -1,0 +1,568 @@
+//! Corpus calibration, histograms, dissimilarities (eqs. 11–16) and scale aggregation (§3.2).
+//!
+//! (Skeleton: presets and docs are being filled in.)
+
+pub use crate::signature::Aggregation;
+use crate::signature::{ChannelValues, QuantileSketch, Signature, SignatureSpec};
+use serde::{Deserialize, Serialize};
+
+/// Default number of histogram bins (paper §5).
+pub const DEFAULT_BINS: usize = 256;
+/// Default window: this percentile of the pooled corpus distances (paper §5).
+pub const DEFAULT_PERCENTILE: f64 = 0.95;
+/// Added to bin probabilities inside the logarithms of the symmetric KL dissimilarity.
+pub const KL_EPSILON: f64 = 1e-12;
+/// Floor of the Bhattacharyya coefficient (so the dissimilarity is at most `-ln 1e-12 ≈ 27.6`).
+pub const BHATTACHARYYA_FLOOR: f64 = 1e-12;
+/// Sub-bins per bin used to discretise a quantile sketch before linear binning.
+const SUB_BINS: usize = 16;
+
+/// Distribution dissimilarity (§2.4).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Dissimilarity {
+    /// `∫|f − g| dδ` on un-normalised densities (eq. 11, p = 1).
+    L1,
+    /// `(∫(f − g)² dδ)^{1/2}` on un-normalised densities (eq. 11, p = 2).
+    L2,
+    /// L1 on normalised densities `f̂`.
+    NL1,
+    /// L2 on normalised densities `f̂`.
+    NL2,
+    /// Symmetric Kullback–Leibler (eq. 13) on normalised bins, [`KL_EPSILON`] added.
+    KL,
+    /// Bhattacharyya `−ln Σ √(p q)` (eq. 14) on normalised bins.
+    Bhattacharyya,
+    /// `2 Σ (p − q)² / (p + q)` (eq. 15) on normalised bins (empty-empty bins contribute 0).
+    Chi2,
+    /// `∫|F̂ − Ĝ| dδ` (eq. 16).
+    Emd,
+    /// `sup |f − g|` on un-normalised densities (eq. 12).
+    LInf,
+}
+
+impl Dissimilarity {
+    /// Name as used in configuration names (`L1`, `L2`, `nL1`, `nL2`, `KL`, `Bhatt`, `chi2`,
+    /// `EMD`, `Linf`).
+    pub fn label(&self) -> &'static str {
+        match self {
+            Dissimilarity::L1 => "L1",
+            Dissimilarity::L2 => "L2",
+            Dissimilarity::NL1 => "nL1",
+            Dissimilarity::NL2 => "nL2",
+            Dissimilarity::KL => "KL",
+            Dissimilarity::Bhattacharyya => "Bhatt",
+            Dissimilarity::Chi2 => "chi2",
+            Dissimilarity::Emd => "EMD",
+            Dissimilarity::LInf => "Linf",
+        }
+    }
+
+    /// Every dissimilarity, in the order of paper Table 1 (then L∞).
+    pub fn all() -> [Dissimilarity; 9] {
+        use Dissimilarity::*;
+        [L1, L2, NL1, NL2, KL, Bhattacharyya, Chi2, Emd, LInf]
+    }
+}
+
+/// Per-channel histogram windows derived from a corpus, stored with the index.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Calibration {
+    /// Increases whenever the calibration is recomputed.
+    pub epoch: u64,
+    /// Key of the spec it was computed for.
+    pub spec_key: String,
+    /// Channel names, in the spec's order.
+    pub channel_names: Vec<String>,
+    /// Upper end of the window `[0, window_max]` per channel (0 for vector channels).
+    pub window_max: Vec<f64>,
+    /// Number of bins.
+    pub bins: usize,
+    /// Gaussian Parzen bandwidth (standard deviation) in bins (1.0 = window / bins).
+    pub bandwidth_bins: f64,
+    /// Percentile of the pooled distances that defined the windows.
+    pub percentile: f64,
+    /// Number of signatures that contributed.
+    pub shapes: usize,
+}
+
+/// A signature's channels as histograms under one calibration: what scoring scans.
+#[derive(Clone, Debug)]
+pub struct Prepared {
+    /// Epoch of the calibration used.
+    pub epoch: u64,
+    /// Channel names, in the calibration's order.
+    pub names: Vec<String>,
+    /// Per channel (`None` when the signature lacks it).
+    pub channels: Vec<Option<PreparedChannel>>,
+}
+
+/// One prepared channel.
+#[derive(Clone, Debug)]
+pub enum PreparedChannel {
+    /// A binned, Parzen-smoothed distribution.
+    Histogram(Histogram),
+    /// A vector (ShapeDNA).
+    Vector(Vec<f64>),
+}
+
+/// A histogram on `[0, bins · bin_width]`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Histogram {
+    /// Bin width `h` (distance units).
+    pub bin_width: f64,
+    /// Un-normalised density `f` per bin (mass per bin / h); `Σ f h` = in-window mass.
+    pub density: Vec<f64>,
+    /// Normalised bin probabilities `p_b = f̂_b h` (sum 1, or all 0 when the window is empty).
+    pub prob: Vec<f64>,
+    /// Cumulative sums of `prob`.
+    pub cdf: Vec<f64>,
+}
+
+/// What to rank by.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct QuerySpec {
+    /// Channels (names) compared; their dissimilarities are aggregated.
+    pub channels: Vec<String>,
+    /// Dissimilarity of each channel.
+    pub dissimilarity: Dissimilarity,
+    /// Dissimilarity-stage aggregation over `channels` ([`Aggregation::Single`]: first only).
+    pub aggregation: Aggregation,
+}
+
+/// A named method: what to compute per shape and how to rank.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Config {
+    /// Name, as in REFERENCE.md where the configuration appears there.
+    pub name: String,
+    /// Signature to compute.
+    pub signature: SignatureSpec,
+    /// Ranking.
+    pub query: QuerySpec,
+}
+
+/// Options of [`calibrate_with`].
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct CalibrationOptions {
+    /// Number of bins.
+    pub bins: usize,
+    /// Parzen bandwidth in bins.
+    pub bandwidth_bins: f64,
+    /// Percentile (fraction) of pooled distances for the window.
+    pub percentile: f64,
+}
+
+impl Default for CalibrationOptions {
+    fn default() -> Self {
+        Self {
+            bins: DEFAULT_BINS,
+            bandwidth_bins: 1.0,
+            percentile: DEFAULT_PERCENTILE,
+        }
+    }
+}
+
+/// Calibration with the paper's defaults (256 bins, bandwidth = window/256, 95th percentile).
+pub fn calibrate(signatures: &[&Signature], spec: &SignatureSpec, epoch: u64) -> Calibration {
+    calibrate_with(signatures, spec, epoch, &CalibrationOptions::default())
+}
+
+/// Calibration: per channel, the `percentile` of the pooled distribution of all signatures'
+/// distances, each shape weighted equally (the mixture of their normalised distributions).
+/// A channel no signature has gets the window 1.0.
+pub fn calibrate_with(
+    signatures: &[&Signature],
+    spec: &SignatureSpec,
+    epoch: u64,
+    opts: &CalibrationOptions,
+) -> Calibration {
+    let names = spec.channel_names();
+    let window_max = names
+        .iter()
+        .map(|name| {
+            let sketches: Vec<&QuantileSketch> = signatures
+                .iter()
+                .filter_map(|s| match s.channel(name).map(|c| &c.values) {
+                    Some(ChannelValues::Distribution(q)) => Some(q),
+                    _ => None,
+                })
+                .collect();
+            let vector = signatures.iter().any(|s| {
+                matches!(
+                    s.channel(name).map(|c| &c.values),
+                    Some(ChannelValues::Vector(_))
+                )
+            });
+            if vector {
+                0.0
+            } else if sketches.is_empty() {
+                1.0
+            } else {
+                pooled_quantile(&sketches, opts.percentile)
+            }
+        })
+        .collect();
+    Calibration {
+        epoch,
+        spec_key: spec.key(),
+        channel_names: names,
+        window_max,
+        bins: opts.bins.max(1),
+        bandwidth_bins: opts.bandwidth_bins,
+        percentile: opts.percentile,
+        shapes: signatures.len(),
+    }
+}
+
+/// `x` with `mean_s F̂_s(x) = p` (bisection on the pooled piecewise-linear CDF).
+fn pooled_quantile(sketches: &[&QuantileSketch], p: f64) -> f64 {
+    let hi0 = sketches
+        .iter()
+        .filter_map(|s| s.quantiles.last().copied())
+        .fold(0.0f64, f64::max);
+    if hi0 <= 0.0 {
+        return 1.0;
+    }
+    let pooled =
+        |x: f64| sketches.iter().map(|s| sketch_cdf(s, x)).sum::<f64>() / sketches.len() as f64;
+    let (mut lo, mut hi) = (0.0, hi0);
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if pooled(mid) >= p {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+        if hi - lo <= 1e-15 * hi0 {
+            break;
+        }
+    }
+    if hi > 0.0 {
+        hi
+    } else {
+        hi0
+    }
+}
+
+/// Normalised CDF `F̂(x)` of a quantile sketch (linear between knots; repeated knots are atoms).
+pub fn sketch_cdf(s: &QuantileSketch, x: f64) -> f64 {
+    let q = &s.quantiles;
+    let nq = q.len();
+    if nq < 2 {
+        return if nq == 1 && x >= q[0] { 1.0 } else { 0.0 };
+    }
+    let count = q.partition_point(|&v| v <= x);
+    if count == 0 {
+        return 0.0;
+    }
+    if count >= nq {
+        return 1.0;
+    }
+    let j = count - 1;
+    let (a, b) = (q[j], q[j + 1]);
+    let frac = if b > a { (x - a) / (b - a) } else { 0.0 };
+    (j as f64 + frac) / (nq - 1) as f64
+}
+
+/// Linear binning of weighted values to the centres of `bins` bins on `[0, window]` (values
+/// outside the window dropped; values below the first / above the last centre go wholly to the
+/// end bin), then a Gaussian Parzen window of `bandwidth_bins` bins (truncated at ±4σ, weights
+/// summing to 1, mass pushed past the ends dropped). Returns mass per bin.
+pub fn parzen_histogram(
+    values: impl IntoIterator<Item = (f64, f64)>,
+    window: f64,
+    bins: usize,
+    bandwidth_bins: f64,
+) -> Vec<f64> {
+    let mut raw = vec![0.0; bins];
+    if bins == 0 || window <= 0.0 || !window.is_finite() {
+        return raw;
+    }
+    let inv_h = bins as f64 / window;
+    for (x, w) in values {
+        if !(0.0..=window).contains(&x) {
+            continue;
+        }
+        let u = x * inv_h - 0.5;
+        if u <= 0.0 {
+            raw[0] += w;
+        } else if u >= (bins - 1) as f64 {
+            raw[bins - 1] += w;
+        } else {
+            let i = u as usize;
+            let f = u - i as f64;
+            raw[i] += w * (1.0 - f);
+            raw[i + 1] += w * f;
+        }
+    }
+    gaussian_smooth(&raw, bandwidth_bins)
+}
+
+fn gaussian_smooth(raw: &[f64], sigma: f64) -> Vec<f64> {
+    if sigma <= 0.0 {
+        return raw.to_vec();
+    }
+    let r = (4.0 * sigma).ceil() as isize;
+    let g: Vec<f64> = (-r..=r)
+        .map(|k| (-(k * k) as f64 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let gs: f64 = g.iter().sum();
+    let n = raw.len() as isize;
+    let mut out = vec![0.0; raw.len()];
+    for (i, &v) in raw.iter().enumerate() {
+        if v == 0.0 {
+            continue;
+        }
+        for (kk, &gk) in g.iter().enumerate() {
+            let j = i as isize + kk as isize - r;
+            if j >= 0 && j < n {
+                out[j as usize] += v * gk / gs;
+            }
+        }
+    }
+    out
+}
+
+/// Histogram of a quantile sketch on `[0, window]` (see [`parzen_histogram`]): the piecewise
+/// linear CDF is integrated exactly over `16` sub-bins per bin, each sub-bin's mass placed at
+/// its centre.
+pub fn sketch_histogram(
+    s: &QuantileSketch,
+    window: f64,
+    bins: usize,
+    bandwidth_bins: f64,
+) -> Histogram {
+    let h = if bins > 0 { window / bins as f64 } else { 0.0 };
+    let nsub = bins * SUB_BINS;
+    let hs = if nsub > 0 { window / nsub as f64 } else { 0.0 };
+    // Distances are ≥ 0: the first sub-bin also takes any atom at 0 (the diagonal pairs).
+    let mut prev = 0.0;
+    let values = (0..nsub).map(|k| {
+        let hi = sketch_cdf(s, (k + 1) as f64 * hs);
+        let m = (hi - prev) * s.mass;
+        prev = hi;
+        ((k as f64 + 0.5) * hs, m)
+    });
+    let mass_bins = parzen_histogram(values, window, bins, bandwidth_bins);
+    histogram_from_mass(mass_bins, h)
+}
+
+/// Builds the derived arrays of a [`Histogram`] from mass per bin.
+pub fn histogram_from_mass(mass_bins: Vec<f64>, bin_width: f64) -> Histogram {
+    let total: f64 = mass_bins.iter().sum();
+    let density = if bin_width > 0.0 {
+        mass_bins.iter().map(|m| m / bin_width).collect()
+    } else {
+        vec![0.0; mass_bins.len()]
+    };
+    let prob: Vec<f64> = if total > 0.0 {
+        mass_bins.iter().map(|m| m / total).collect()
+    } else {
+        vec![0.0; mass_bins.len()]
+    };
+    let mut acc = 0.0;
+    let cdf = prob
+        .iter()
+        .map(|p| {
+            acc += p;
+            acc
+        })
+        .collect();
+    Histogram {
+        bin_width,
+        density,
+        prob,
+        cdf,
+    }
+}
+
+/// Derives the histograms of `sig` under `cal` (channels matched by name).
+pub fn prepare_for_ranking(sig: &Signature, cal: &Calibration) -> Prepared {
+    let channels = cal
+        .channel_names
+        .iter()
+        .zip(&cal.window_max)
+        .map(|(name, &w)| {
+            sig.channel(name).map(|c| match &c.values {
+                ChannelValues::Distribution(s) => {
+                    PreparedChannel::Histogram(sketch_histogram(s, w, cal.bins, cal.bandwidth_bins))
+                }
+                ChannelValues::Vector(v) => PreparedChannel::Vector(v.clone()),
+            })
+        })
+        .collect();
+    Prepared {
+        epoch: cal.epoch,
+        names: cal.channel_names.clone(),
+        channels,
+    }
+}
+
+/// Dissimilarity of two histograms of the same calibration (different bin counts → ∞).
+pub fn histogram_dissimilarity(d: Dissimilarity, a: &Histogram, b: &Histogram) -> f64 {
+    if a.density.len() != b.density.len() {
+        return f64::INFINITY;
+    }
+    let h = a.bin_width;
+    match d {
+        Dissimilarity::L1 => {
+            a.density
+                .iter()
+                .zip(&b.density)
+                .map(|(x, y)| (x - y).abs())
+                .sum::<f64>()
+                * h
+        }
+        Dissimilarity::L2 => (a
+            .density
+            .iter()
+            .zip(&b.density)
+            .map(|(x, y)| (x - y) * (x - y))
+            .sum::<f64>()
+            * h)
+            .sqrt(),
+        Dissimilarity::LInf => a
+            .density
+            .iter()
+            .zip(&b.density)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max),
+        Dissimilarity::NL1 => a.prob.iter().zip(&b.prob).map(|(x, y)| (x - y).abs()).sum(),
+        Dissimilarity::NL2 => {
+            // p/h is the normalised density: (∫(f̂ − ĝ)²)^{1/2} = (Σ (p − q)² / h)^{1/2}.
+            if h > 0.0 {
+                (a.prob
+                    .iter()
+                    .zip(&b.prob)
+                    .map(|(x, y)| (x - y) * (x - y))
+                    .sum::<f64>()
+                    / h)
+                    .sqrt()
+            } else {
+                0.0
+            }
+        }
+        Dissimilarity::KL => a
+            .prob
+            .iter()
+            .zip(&b.prob)
+            .map(|(p, q)| (p - q) * ((p + KL_EPSILON).ln() - (q + KL_EPSILON).ln()))
+            .sum(),
+        Dissimilarity::Bhattacharyya => {
+            let bc: f64 = a
+                .prob
+                .iter()
+                .zip(&b.prob)
+                .map(|(p, q)| (p * q).sqrt())
+                .sum();
+            -(bc.clamp(BHATTACHARYYA_FLOOR, 1.0)).ln()
+        }
+        Dissimilarity::Chi2 => {
+            2.0 * a
+                .prob
+                .iter()
+                .zip(&b.prob)
+                .map(|(p, q)| {
+                    if p + q > 0.0 {
+                        (p - q) * (p - q) / (p + q)
+                    } else {
+                        0.0
+                    }
+                })
+                .sum::<f64>()
+        }
+        Dissimilarity::Emd => {
+            a.cdf
+                .iter()
+                .zip(&b.cdf)
+                .map(|(x, y)| (x - y).abs())
+                .sum::<f64>()
+                * h
+        }
+    }
+}
+
+/// Dissimilarity of two vectors: L1 → `Σ|a − b|`, L∞ → `max|a − b|`, every other choice the
+/// Euclidean distance (ShapeDNA). Different lengths → ∞.
+pub fn vector_dissimilarity(d: Dissimilarity, a: &[f64], b: &[f64]) -> f64 {
+    if a.len() != b.len() {
+        return f64::INFINITY;
+    }
+    let diffs = a.iter().zip(b).map(|(x, y)| (x - y).abs());
+    match d {
+        Dissimilarity::L1 | Dissimilarity::NL1 => diffs.sum(),
+        Dissimilarity::LInf => diffs.fold(0.0, f64::max),
+        _ => diffs.map(|v| v * v).sum::<f64>().sqrt(),
+    }
+}
+
+/// Dissimilarity of two prepared channels (a missing or mismatched channel → ∞).
+pub fn channel_dissimilarity(
+    d: Dissimilarity,
+    a: Option<&PreparedChannel>,
+    b: Option<&PreparedChannel>,
+) -> f64 {
+    match (a, b) {
+        (Some(PreparedChannel::Histogram(x)), Some(PreparedChannel::Histogram(y))) => {
+            histogram_dissimilarity(d, x, y)
+        }
+        (Some(PreparedChannel::Vector(x)), Some(PreparedChannel::Vector(y))) => {
+            vector_dissimilarity(d, x, y)
+        }
+        _ => f64::INFINITY,
+    }
+}
+
+impl Prepared {
+    /// Index of the channel called `name`.
+    pub fn channel_index(&self, name: &str) -> Option<usize> {
+        self.names.iter().position(|n| n == name)
+    }
+
+    /// The channel called `name`.
+    pub fn channel(&self, name: &str) -> Option<&PreparedChannel> {
+        self.channel_index(name)
+            .and_then(|i| self.channels[i].as_ref())
+    }
+}
+
+/// Aggregated dissimilarity of two prepared shapes (lower = more similar; ∞ when a requested
+/// channel is missing from either).
+pub fn score(query: &Prepared, candidate: &Prepared, q: &QuerySpec) -> f64 {
+    let names: &[String] = match q.aggregation {
+        Aggregation::Single => &q.channels[..q.channels.len().min(1)],
+        _ => &q.channels,
+    };
+    if names.is_empty() {
+        return f64::INFINITY;
+    }
+    q.aggregation.apply(
+        names.iter().map(|n| {
+            channel_dissimilarity(q.dissimilarity, query.channel(n), candidate.channel(n))
+        }),
+    )
+}
+
+/// Every named configuration (paper Tables 1–3, REFERENCE.md names, presets, baselines).
+pub fn paper_configs() -> Vec<Config> {
+    Vec::new()
+}
+
+/// The product default.
+pub fn default_config() -> Config {
+    let spec = SignatureSpec::with_channels(
+        crate::signature::SMALL_HEAT_SCALES
+            .iter()
+            .map(|&t| crate::signature::ChannelSpec::heat(t, crate::signature::Norm::L2))
+            .collect(),
+    );
+    Config {
+        name: "default".into(),
+        query: QuerySpec {
+            channels: spec.channel_names(),
+            dissimilarity: Dissimilarity::NL1,
+            aggregation: Aggregation::Sum,
+        },
+        signature: spec,
+    }
+}

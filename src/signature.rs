@@ -1,0 +1,1452 @@
+//! Corpus-independent spectral signatures of one shape (paper §2.3–§3).
+//!
+//! (Skeleton: the computation is being filled in; see the module docs once complete.)
+
+use crate::mesh::{norm, sub, Mesh};
+use crate::pipeline::Analysis;
+use crate::{Error, Result};
+use faer::linalg::matmul::matmul;
+use faer::{Accum, Mat, MatRef, Par};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+
+/// The default diffusion times for unit-area shapes, `t_j = 0.016 · 2.5^j`, j = 0..5.
+pub const DEFAULT_HEAT_SCALES: [f64; 6] = [0.016, 0.04, 0.1, 0.25, 0.625, 1.5625];
+
+/// The three smallest default scales (`t ≤ 0.1`).
+pub const SMALL_HEAT_SCALES: [f64; 3] = [0.016, 0.04, 0.1];
+
+/// Scale aggregation functional (§3.2): single scale, sum, sum of squares, maximum.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Aggregation {
+    /// The first (only) member.
+    Single,
+    /// `Σ_t f_t`.
+    Sum,
+    /// `Σ_t f_t²`.
+    Sum2,
+    /// `max_t f_t`.
+    Max,
+}
+
+impl Aggregation {
+    /// Short name used in channel and configuration names.
+    pub fn label(&self) -> &'static str {
+        match self {
+            Aggregation::Single => "Single",
+            Aggregation::Sum => "Sum",
+            Aggregation::Sum2 => "Sum2",
+            Aggregation::Max => "Max",
+        }
+    }
+
+    /// Applies the functional to `values` in order (empty → 0).
+    pub fn apply(&self, values: impl IntoIterator<Item = f64>) -> f64 {
+        let mut it = values.into_iter();
+        match self {
+            Aggregation::Single => it.next().unwrap_or(0.0),
+            Aggregation::Sum => it.sum(),
+            Aggregation::Sum2 => it.map(|v| v * v).sum(),
+            Aggregation::Max => it.fold(f64::NEG_INFINITY, f64::max).max(0.0),
+        }
+    }
+}
+
+/// Transfer function K(λ) of the diffusion kernel (eq. 5).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case")]
+pub enum Kernel {
+    /// Heat kernel `K(λ) = e^{-tλ}` (§2.2).
+    Heat {
+        /// Diffusion time (unit-area shapes: see [`DEFAULT_HEAT_SCALES`]).
+        t: f64,
+    },
+    /// Commute-time kernel `K(λ) = λ^{-1/2}` (eq. 19).
+    CommuteTime,
+    /// Band-limiting step `K(λ) = 1[λ < λ_c]`.
+    Step {
+        /// Cut-off eigenvalue.
+        lambda_c: f64,
+    },
+    /// Kernel-stage aggregation of heat kernels (§3.2): `K(λ) = A_t e^{-tλ}`; for
+    /// [`Aggregation::Sum2`], `K(λ) = (Σ_t e^{-2tλ})^{1/2}`, so that the L2 distance is
+    /// `(Σ_t d_t²)^{1/2}`.
+    HeatAggregate {
+        /// Diffusion times.
+        ts: Vec<f64>,
+        /// Functional applied to the transfer functions.
+        aggregation: Aggregation,
+    },
+}
+
+/// Norm of `k(x,·) − k(y,·)` defining the diffusion distance (§3).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Norm {
+    /// `L²(X)`: closed form from the eigenmap (eq. 9).
+    L2,
+    /// `L¹(X)`: kernel rows on area-weighted quadrature points.
+    L1,
+    /// `L^∞(X)`: kernel rows on quadrature points.
+    LInf,
+}
+
+impl Norm {
+    fn label(&self) -> &'static str {
+        match self {
+            Norm::L2 => "l2",
+            Norm::L1 => "l1",
+            Norm::LInf => "linf",
+        }
+    }
+}
+
+/// What one channel of a signature measures.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case")]
+pub enum ChannelKind {
+    /// Distribution of the spectral distance of `kernel` under `norm` (eq. 10).
+    Spectral {
+        /// Transfer function.
+        kernel: Kernel,
+        /// Norm.
+        norm: Norm,
+    },
+    /// Distance-stage aggregation (§3.2): distribution of `A_t d_t(x, y)` over pairs, `d_t` the
+    /// heat distance at time `t` under `norm`.
+    DistanceAggregate {
+        /// Diffusion times.
+        ts: Vec<f64>,
+        /// Norm of each `d_t`.
+        norm: Norm,
+        /// Functional applied per pair.
+        aggregation: Aggregation,
+    },
+    /// Distribution-stage aggregation (§3.2): the measure `Σ_t F_t` (mass `|ts| · area²`).
+    DistributionSum {
+        /// Diffusion times.
+        ts: Vec<f64>,
+        /// Norm of each `d_t`.
+        norm: Norm,
+    },
+    /// Baseline: distribution of geodesic distances (edge-graph Dijkstra), optionally only the
+    /// pairs closer than `radius`.
+    Geodesic {
+        /// Pairs farther apart are left out (unit-area units).
+        radius: Option<f64>,
+    },
+    /// Baseline: Osada's D2, Euclidean distances between `samples` area-uniform surface points.
+    EuclideanD2 {
+        /// Number of surface points (all pairs are used).
+        samples: usize,
+    },
+    /// Baseline: ShapeDNA, the first `count` non-zero eigenvalues (a vector, not a distribution).
+    ShapeDna {
+        /// Number of eigenvalues.
+        count: usize,
+    },
+}
+
+/// One channel of a [`SignatureSpec`].
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ChannelSpec {
+    /// What the channel measures.
+    pub kind: ChannelKind,
+}
+
+fn fmt_ts(ts: &[f64]) -> String {
+    ts.iter()
+        .map(|t| format!("{t}"))
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+fn fmt_lambda_c(lc: f64) -> String {
+    let m = lc / (4.0 * std::f64::consts::PI);
+    if (m - m.round()).abs() < 1e-9 * m.abs().max(1.0) {
+        format!("4pi*{}", m.round())
+    } else {
+        format!("{lc}")
+    }
+}
+
+impl ChannelSpec {
+    /// Heat kernel at time `t` under `norm`.
+    pub fn heat(t: f64, norm: Norm) -> Self {
+        Self {
+            kind: ChannelKind::Spectral {
+                kernel: Kernel::Heat { t },
+                norm,
+            },
+        }
+    }
+
+    /// Commute-time kernel under the L2 norm (eq. 19).
+    pub fn commute_time() -> Self {
+        Self {
+            kind: ChannelKind::Spectral {
+                kernel: Kernel::CommuteTime,
+                norm: Norm::L2,
+            },
+        }
+    }
+
+    /// Step kernel `1[λ < λ_c]` under the L2 norm.
+    pub fn step(lambda_c: f64) -> Self {
+        Self {
+            kind: ChannelKind::Spectral {
+                kernel: Kernel::Step { lambda_c },
+                norm: Norm::L2,
+            },
+        }
+    }
+
+    /// Geodesic distance distribution.
+    pub fn geodesic(radius: Option<f64>) -> Self {
+        Self {
+            kind: ChannelKind::Geodesic { radius },
+        }
+    }
+
+    /// Osada D2 with `samples` points.
+    pub fn d2(samples: usize) -> Self {
+        Self {
+            kind: ChannelKind::EuclideanD2 { samples },
+        }
+    }
+
+    /// ShapeDNA with `count` eigenvalues.
+    pub fn shape_dna(count: usize) -> Self {
+        Self {
+            kind: ChannelKind::ShapeDna { count },
+        }
+    }
+
+    /// Stable, human-readable name, e.g. `heat-l2[t=0.016]`, `ct-l2`, `step-l2[lc=4pi*10]`,
+    /// `heat-l2-ksum[t=0.016,0.04]`, `heat-l2-dmax[...]`, `heat-l2-fsum[...]`, `geo`,
+    /// `geo[r=0.5]`, `d2[n=2000]`, `shapedna[50]`.
+    pub fn name(&self) -> String {
+        match &self.kind {
+            ChannelKind::Spectral { kernel, norm } => {
+                let n = norm.label();
+                match kernel {
+                    Kernel::Heat { t } => format!("heat-{n}[t={t}]"),
+                    Kernel::CommuteTime => format!("ct-{n}"),
+                    Kernel::Step { lambda_c } => {
+                        format!("step-{n}[lc={}]", fmt_lambda_c(*lambda_c))
+                    }
+                    Kernel::HeatAggregate { ts, aggregation } => format!(
+                        "heat-{n}-k{}[t={}]",
+                        aggregation.label().to_lowercase(),
+                        fmt_ts(ts)
+                    ),
+                }
+            }
+            ChannelKind::DistanceAggregate {
+                ts,
+                norm,
+                aggregation,
+            } => format!(
+                "heat-{}-d{}[t={}]",
+                norm.label(),
+                aggregation.label().to_lowercase(),
+                fmt_ts(ts)
+            ),
+            ChannelKind::DistributionSum { ts, norm } => {
+                format!("heat-{}-fsum[t={}]", norm.label(), fmt_ts(ts))
+            }
+            ChannelKind::Geodesic { radius } => match radius {
+                Some(r) => format!("geo[r={r}]"),
+                None => "geo".to_string(),
+            },
+            ChannelKind::EuclideanD2 { samples } => format!("d2[n={samples}]"),
+            ChannelKind::ShapeDna { count } => format!("shapedna[{count}]"),
+        }
+    }
+}
+
+/// Which point pairs discretise `μ × μ` in eq. 10.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case")]
+pub enum PairQuadrature {
+    /// Every ordered vertex pair (x, y), weight `a_x a_y`: exact, O(n² k).
+    AllVertices,
+    /// Farthest-point samples (edge-graph geodesic FPS), each carrying the area of its Voronoi
+    /// cell (nearest-sample assignment of vertices, weights `a_i`).
+    Farthest {
+        /// Number of samples for L2 channels (clamped to n).
+        samples: usize,
+        /// Represent each sample by the area-weighted mean eigenmap row of its Voronoi cell
+        /// instead of the sample vertex's own row.
+        #[serde(default)]
+        cell_means: bool,
+    },
+}
+
+/// What to compute for a shape: the channels and the discretisation.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct SignatureSpec {
+    /// Channels, in order.
+    pub channels: Vec<ChannelSpec>,
+    /// Pair quadrature of the L2 spectral channels.
+    pub quadrature: PairQuadrature,
+    /// Quadrature points (pairs and integration points) of L1 / L∞ channels.
+    pub lp_samples: usize,
+    /// Geodesic sources (farthest-point samples with Voronoi weights; targets are all vertices).
+    pub geodesic_sources: usize,
+    /// Number of quantile intervals stored per distribution channel.
+    pub sketch_quantiles: usize,
+}
+
+impl Default for SignatureSpec {
+    fn default() -> Self {
+        Self {
+            channels: Vec::new(),
+            quadrature: PairQuadrature::Farthest {
+                samples: 1000,
+                cell_means: false,
+            },
+            lp_samples: 300,
+            geodesic_sources: 200,
+            sketch_quantiles: 512,
+        }
+    }
+}
+
+impl SignatureSpec {
+    /// A spec with `channels` and the default discretisation.
+    pub fn with_channels(channels: Vec<ChannelSpec>) -> Self {
+        Self {
+            channels,
+            ..Self::default()
+        }
+    }
+
+    /// Stable key (hex SHA-256 prefix of the canonical JSON of the spec) for caches.
+    pub fn key(&self) -> String {
+        let json = serde_json::to_string(self).unwrap_or_default();
+        let digest = Sha256::digest(json.as_bytes());
+        hex::encode(&digest[..12])
+    }
+
+    /// Channel names, in order.
+    pub fn channel_names(&self) -> Vec<String> {
+        self.channels.iter().map(|c| c.name()).collect()
+    }
+
+    /// The union of several specs (channels deduplicated by name, first occurrence first). The
+    /// discretisation of `self` is kept.
+    pub fn union(&self, others: &[&SignatureSpec]) -> SignatureSpec {
+        let mut out = self.clone();
+        let mut names = out.channel_names();
+        for o in others {
+            for c in &o.channels {
+                let n = c.name();
+                if !names.contains(&n) {
+                    names.push(n);
+                    out.channels.push(c.clone());
+                }
+            }
+        }
+        out
+    }
+}
+
+/// A distribution of pair distances stored independently of any corpus: the total mass
+/// `F(∞)` and the quantile function at `Q + 1` equally spaced levels.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct QuantileSketch {
+    /// Total mass of the measure (`area²` for eq. 10 over all pairs).
+    pub mass: f64,
+    /// `quantiles[j] = F̂^{-1}(j / Q)`, j = 0..=Q; `quantiles[0]` is the smallest distance,
+    /// `quantiles[Q]` the largest. Between knots the CDF is linear.
+    pub quantiles: Vec<f64>,
+}
+
+/// Stored values of one channel.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case")]
+pub enum ChannelValues {
+    /// A distance distribution.
+    Distribution(QuantileSketch),
+    /// A plain vector (ShapeDNA).
+    Vector(Vec<f64>),
+}
+
+/// One channel of a [`Signature`].
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ChannelData {
+    /// [`ChannelSpec::name`] of the channel.
+    pub name: String,
+    /// The values.
+    pub values: ChannelValues,
+}
+
+/// The signature of one shape under one [`SignatureSpec`].
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Signature {
+    /// [`SignatureSpec::key`] of the spec it was computed with.
+    pub spec_key: String,
+    /// One entry per channel of the spec, in order.
+    pub channels: Vec<ChannelData>,
+    /// Vertices of the analysed mesh.
+    pub vertices: usize,
+    /// Total area of the analysed mesh.
+    pub area: f64,
+    /// Number of pair-quadrature points actually used for L2 channels.
+    pub quadrature_points: usize,
+}
+
+/// Computes the signature of an analysed shape (see the module docs for the method).
+///
+/// Errors: [`Error::InvalidArgument`] for an invalid spec (non-positive or non-finite scales,
+/// zero samples or quantiles, more ShapeDNA eigenvalues than the spectrum has) or a spectrum that
+/// does not match the mesh.
+pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Signature> {
+    validate_spec(spec)?;
+    let mesh = &analysis.mesh;
+    let sp = &analysis.spectrum;
+    let n = mesh.vertices.len();
+    if sp.eigenvectors.nrows() != n
+        || sp.mass.len() != n
+        || sp.eigenvalues.len() != sp.eigenvectors.ncols()
+    {
+        return Err(Error::InvalidArgument(format!(
+            "spectrum ({} × {}, {} masses, {} eigenvalues) does not match the mesh ({n} vertices)",
+            sp.eigenvectors.nrows(),
+            sp.eigenvectors.ncols(),
+            sp.mass.len(),
+            sp.eigenvalues.len()
+        )));
+    }
+    if n == 0 {
+        return Err(Error::EmptyMesh("no vertices".into()));
+    }
+    let area: f64 = sp.mass.iter().sum();
+    let zero_tol = ZERO_MODE_TOLERANCE * 4.0 * std::f64::consts::PI / area;
+    let nonzero: Vec<usize> = (0..sp.eigenvalues.len())
+        .filter(|&i| sp.eigenvalues[i] > zero_tol)
+        .collect();
+
+    // Which quadratures are needed.
+    let mut need_l2 = false;
+    let mut need_lp = false;
+    let mut need_geo = false;
+    for c in &spec.channels {
+        match &c.kind {
+            ChannelKind::Spectral { norm, .. }
+            | ChannelKind::DistanceAggregate { norm, .. }
+            | ChannelKind::DistributionSum { norm, .. } => {
+                if *norm == Norm::L2 {
+                    need_l2 = true
+                } else {
+                    need_lp = true
+                }
+            }
+            ChannelKind::Geodesic { .. } => need_geo = true,
+            ChannelKind::ShapeDna { count } => {
+                if *count > nonzero.len() {
+                    return Err(Error::InvalidArgument(format!(
+                        "ShapeDNA[{count}] needs {count} non-zero eigenvalues, the spectrum has {}",
+                        nonzero.len()
+                    )));
+                }
+            }
+            ChannelKind::EuclideanD2 { .. } => {}
+        }
+    }
+    let l2_samples = match spec.quadrature {
+        PairQuadrature::AllVertices => 0,
+        PairQuadrature::Farthest { samples, .. } => samples.min(n),
+    };
+    let cell_means = matches!(
+        spec.quadrature,
+        PairQuadrature::Farthest {
+            cell_means: true,
+            ..
+        }
+    );
+    let lp_samples = spec.lp_samples.min(n);
+    let geo_sources = spec.geodesic_sources.min(n);
+    let mut prefixes = Vec::new();
+    if need_l2 && l2_samples > 0 {
+        prefixes.push(l2_samples);
+    }
+    if need_lp {
+        prefixes.push(lp_samples);
+    }
+    if need_geo {
+        prefixes.push(geo_sources);
+    }
+    let graph = if !prefixes.is_empty() || need_geo {
+        Some(EdgeGraph::new(mesh))
+    } else {
+        None
+    };
+    let fps = match &graph {
+        Some(g) if !prefixes.is_empty() => Some(farthest_points(mesh, g, &prefixes)),
+        _ => None,
+    };
+    let cells = |count: usize| -> Quadrature {
+        let f = fps
+            .as_ref()
+            .expect("farthest points computed for every prefix");
+        f.quadrature(count, &sp.mass)
+    };
+    let l2_quad = need_l2.then(|| {
+        if l2_samples == 0 {
+            Quadrature::all_vertices(&sp.mass)
+        } else {
+            cells(l2_samples)
+        }
+    });
+    let lp_quad = need_lp.then(|| cells(lp_samples));
+    let geo_quad = need_geo.then(|| cells(geo_sources));
+
+    let phi = sp.eigenvectors.as_ref();
+    let l2_rows = l2_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means));
+    let lp_rows = lp_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means));
+    let lp_nodes = lp_quad.as_ref().map(|q| q.point_rows(phi));
+    let q = spec.sketch_quantiles;
+
+    let channels: Vec<Result<ChannelData>> = spec
+        .channels
+        .par_iter()
+        .map(|c| {
+            let values = match &c.kind {
+                ChannelKind::Spectral { kernel, norm } => {
+                    let w = vec![transfer_weights(kernel, &sp.eigenvalues, zero_tol)];
+                    spectral_channel(
+                        &w,
+                        *norm,
+                        PairMode::Single,
+                        &l2_quad,
+                        &l2_rows,
+                        &lp_quad,
+                        &lp_rows,
+                        &lp_nodes,
+                        q,
+                    )
+                }
+                ChannelKind::DistanceAggregate {
+                    ts,
+                    norm,
+                    aggregation,
+                } => {
+                    let w = heat_weights(ts, &sp.eigenvalues, zero_tol);
+                    spectral_channel(
+                        &w,
+                        *norm,
+                        PairMode::Aggregate(*aggregation),
+                        &l2_quad,
+                        &l2_rows,
+                        &lp_quad,
+                        &lp_rows,
+                        &lp_nodes,
+                        q,
+                    )
+                }
+                ChannelKind::DistributionSum { ts, norm } => {
+                    let w = heat_weights(ts, &sp.eigenvalues, zero_tol);
+                    spectral_channel(
+                        &w,
+                        *norm,
+                        PairMode::Mixture,
+                        &l2_quad,
+                        &l2_rows,
+                        &lp_quad,
+                        &lp_rows,
+                        &lp_nodes,
+                        q,
+                    )
+                }
+                ChannelKind::Geodesic { radius } => {
+                    ChannelValues::Distribution(crate::baseline::geodesic_sketch(
+                        mesh,
+                        graph.as_ref().expect("graph built for geodesic channels"),
+                        geo_quad.as_ref().expect("geodesic quadrature"),
+                        &sp.mass,
+                        *radius,
+                        q,
+                    ))
+                }
+                ChannelKind::EuclideanD2 { samples } => {
+                    ChannelValues::Distribution(crate::baseline::d2_sketch(mesh, *samples, q))
+                }
+                ChannelKind::ShapeDna { count } => ChannelValues::Vector(
+                    nonzero
+                        .iter()
+                        .take(*count)
+                        .map(|&i| sp.eigenvalues[i])
+                        .collect(),
+                ),
+            };
+            Ok(ChannelData {
+                name: c.name(),
+                values,
+            })
+        })
+        .collect();
+    let channels = channels.into_iter().collect::<Result<Vec<_>>>()?;
+    Ok(Signature {
+        spec_key: spec.key(),
+        channels,
+        vertices: n,
+        area,
+        quadrature_points: l2_quad.as_ref().map_or(0, |q| q.len()),
+    })
+}
+
+/// Eigenvalues `λ ≤ ZERO_MODE_TOLERANCE · 4π / area` are zero modes (λ_0 of each component)
+/// and get kernel weight 0.
+pub const ZERO_MODE_TOLERANCE: f64 = 1e-6;
+
+fn validate_spec(spec: &SignatureSpec) -> Result<()> {
+    let bad = |m: String| Err(Error::InvalidArgument(m));
+    if spec.sketch_quantiles == 0 || spec.sketch_quantiles > 1 << 20 {
+        return bad(format!(
+            "sketch_quantiles must be in 1..=2^20, got {}",
+            spec.sketch_quantiles
+        ));
+    }
+    if let PairQuadrature::Farthest { samples: 0, .. } = spec.quadrature {
+        return bad("quadrature samples must be ≥ 1".into());
+    }
+    if spec.lp_samples == 0 || spec.geodesic_sources == 0 {
+        return bad("lp_samples and geodesic_sources must be ≥ 1".into());
+    }
+    let check_t = |t: f64| t.is_finite() && t > 0.0;
+    for c in &spec.channels {
+        let ok = match &c.kind {
+            ChannelKind::Spectral { kernel, .. } => match kernel {
+                Kernel::Heat { t } => check_t(*t),
+                Kernel::CommuteTime => true,
+                Kernel::Step { lambda_c } => lambda_c.is_finite() && *lambda_c > 0.0,
+                Kernel::HeatAggregate { ts, .. } => {
+                    !ts.is_empty() && ts.iter().all(|&t| check_t(t))
+                }
+            },
+            ChannelKind::DistanceAggregate { ts, .. } | ChannelKind::DistributionSum { ts, .. } => {
+                !ts.is_empty() && ts.iter().all(|&t| check_t(t))
+            }
+            ChannelKind::Geodesic { radius } => radius.is_none_or(|r| r.is_finite() && r > 0.0),
+            ChannelKind::EuclideanD2 { samples } => *samples >= 2 && *samples <= 100_000,
+            ChannelKind::ShapeDna { count } => *count >= 1,
+        };
+        if !ok {
+            return bad(format!("invalid channel {}", c.name()));
+        }
+    }
+    Ok(())
+}
+
+/// `K(λ_i)` of `kernel` for every eigenvalue, 0 on zero modes.
+pub fn transfer_weights(kernel: &Kernel, eigenvalues: &[f64], zero_tol: f64) -> Vec<f64> {
+    eigenvalues
+        .iter()
+        .map(|&l| {
+            if l <= zero_tol {
+                return 0.0;
+            }
+            match kernel {
+                Kernel::Heat { t } => (-t * l).exp(),
+                Kernel::CommuteTime => 1.0 / l.sqrt(),
+                Kernel::Step { lambda_c } => {
+                    if l < *lambda_c {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                }
+                Kernel::HeatAggregate { ts, aggregation } => match aggregation {
+                    Aggregation::Sum2 => {
+                        ts.iter().map(|t| (-2.0 * t * l).exp()).sum::<f64>().sqrt()
+                    }
+                    a => a.apply(ts.iter().map(|t| (-t * l).exp())),
+                },
+            }
+        })
+        .collect()
+}
+
+fn heat_weights(ts: &[f64], eigenvalues: &[f64], zero_tol: f64) -> Vec<Vec<f64>> {
+    ts.iter()
+        .map(|&t| transfer_weights(&Kernel::Heat { t }, eigenvalues, zero_tol))
+        .collect()
+}
+
+/// How the per-scale distances of one pair become histogram entries.
+#[derive(Clone, Copy, Debug)]
+enum PairMode {
+    /// One scale.
+    Single,
+    /// One entry `A_t d_t` (distance-stage aggregation).
+    Aggregate(Aggregation),
+    /// One entry per scale (distribution-stage sum).
+    Mixture,
+}
+
+#[allow(clippy::too_many_arguments)]
+fn spectral_channel(
+    weights: &[Vec<f64>],
+    norm: Norm,
+    mode: PairMode,
+    l2_quad: &Option<Quadrature>,
+    l2_rows: &Option<Mat<f64>>,
+    lp_quad: &Option<Quadrature>,
+    lp_rows: &Option<Mat<f64>>,
+    lp_nodes: &Option<Mat<f64>>,
+    q: usize,
+) -> ChannelValues {
+    let fine = match norm {
+        Norm::L2 => {
+            let quad = l2_quad.as_ref().expect("L2 quadrature");
+            let rows = l2_rows.as_ref().expect("L2 rows");
+            l2_pairs(rows.as_ref(), &quad.weights, weights, mode)
+        }
+        Norm::L1 | Norm::LInf => {
+            let quad = lp_quad.as_ref().expect("Lp quadrature");
+            lp_pairs(
+                lp_rows.as_ref().expect("Lp rows").as_ref(),
+                lp_nodes.as_ref().expect("Lp nodes").as_ref(),
+                &quad.weights,
+                weights,
+                norm == Norm::LInf,
+                mode,
+            )
+        }
+    };
+    ChannelValues::Distribution(fine.sketch(q))
+}
+
+/// Columns `i` with `w_i² ≥ 1e-16 · max w²` (the rest change d² by less than 1e-16 relative),
+/// and the scaled embedding `rows[:, i] · w_i` restricted to them.
+fn weighted_embedding(rows: MatRef<'_, f64>, w: &[f64]) -> Mat<f64> {
+    let wmax = w.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
+    let keep: Vec<usize> = (0..w.len().min(rows.ncols()))
+        .filter(|&i| w[i] != 0.0 && w[i].abs() >= 1e-8 * wmax)
+        .collect();
+    Mat::from_fn(rows.nrows(), keep.len(), |r, c| {
+        rows[(r, keep[c])] * w[keep[c]]
+    })
+}
+
+/// Row ranges of an m × m upper triangle (diagonal included) with about equal pair counts.
+fn row_chunks(m: usize) -> Vec<(usize, usize)> {
+    let chunks = (m / 48).clamp(1, 4096);
+    let total = m * (m + 1) / 2;
+    let mut out = Vec::with_capacity(chunks);
+    let (mut start, mut acc) = (0usize, 0usize);
+    for i in 0..m {
+        acc += m - i;
+        if acc * chunks >= total * (out.len() + 1) {
+            out.push((start, i + 1));
+            start = i + 1;
+        }
+    }
+    if start < m {
+        out.push((start, m));
+    }
+    out
+}
+
+/// Runs `f(r0, r1, fine)` over the row chunks of an m-point pair set, in parallel, merging the
+/// per-chunk histograms in chunk order (deterministic whatever the thread count).
+fn chunked_pairs<F>(m: usize, bound: f64, f: F) -> FineHistogram
+where
+    F: Fn(usize, usize, &mut FineHistogram) + Sync,
+{
+    let chunks = row_chunks(m);
+    let mut total = FineHistogram::new(bound);
+    for group in chunks.chunks(16) {
+        let parts: Vec<FineHistogram> = group
+            .par_iter()
+            .map(|&(r0, r1)| {
+                let mut h = FineHistogram::new(bound);
+                f(r0, r1, &mut h);
+                h
+            })
+            .collect();
+        for p in &parts {
+            total.merge(p);
+        }
+    }
+    total
+}
+
+fn combine(mode: PairMode, d: &[f64], w: f64, fine: &mut FineHistogram) {
+    match mode {
+        PairMode::Single => fine.add(d[0], w),
+        PairMode::Aggregate(a) => fine.add(a.apply(d.iter().copied()), w),
+        PairMode::Mixture => {
+            for &x in d {
+                fine.add(x, w)
+            }
+        }
+    }
+}
+
+fn mode_bound(mode: PairMode, per_scale: &[f64]) -> f64 {
+    match mode {
+        PairMode::Single => per_scale[0],
+        PairMode::Aggregate(a) => a.apply(per_scale.iter().copied()),
+        PairMode::Mixture => per_scale.iter().fold(0.0, |a: f64, &b| a.max(b)),
+    }
+}
+
+fn diag_weight(mode: PairMode, scales: usize) -> f64 {
+    match mode {
+        PairMode::Mixture => scales as f64,
+        _ => 1.0,
+    }
+}
+
+/// Eq. 9 distances between all quadrature points, `d² = |ψ_i|² + |ψ_j|² − 2 ψ_i·ψ_j` (GEMM per
+/// row chunk), every ordered pair weighted `w_i w_j`.
+fn l2_pairs(
+    rows: MatRef<'_, f64>,
+    pw: &[f64],
+    weights: &[Vec<f64>],
+    mode: PairMode,
+) -> FineHistogram {
+    let m = rows.nrows();
+    let psi: Vec<Mat<f64>> = weights
+        .iter()
+        .map(|w| weighted_embedding(rows, w))
+        .collect();
+    let sq: Vec<Vec<f64>> = psi
+        .iter()
+        .map(|p| {
+            (0..m)
+                .map(|i| (0..p.ncols()).map(|c| p[(i, c)] * p[(i, c)]).sum())
+                .collect()
+        })
+        .collect();
+    let per_scale: Vec<f64> = sq
+        .iter()
+        .map(|s| 2.0 * s.iter().fold(0.0f64, |a, &b| a.max(b)).sqrt())
+        .collect();
+    let bound = mode_bound(mode, &per_scale);
+    let ns = psi.len();
+    let dw = diag_weight(mode, ns);
+    chunked_pairs(m, bound, |r0, r1, fine| {
+        let r = r1 - r0;
+        let gs: Vec<Mat<f64>> = psi
+            .iter()
+            .map(|p| {
+                let mut g = Mat::<f64>::zeros(m - r0, r);
+                if p.ncols() > 0 {
+                    matmul(
+                        g.as_mut(),
+                        Accum::Replace,
+                        p.as_ref().subrows(r0, m - r0),
+                        p.as_ref().subrows(r0, r).transpose(),
+                        1.0,
+                        Par::Seq,
+                    );
+                }
+                g
+            })
+            .collect();
+        let mut d = vec![0.0; ns];
+        for ii in 0..r {
+            let i = r0 + ii;
+            fine.add_zero(pw[i] * pw[i] * dw);
+            let cols: Vec<&[f64]> = gs.iter().map(|g| g.col_as_slice(ii)).collect();
+            for jj in (ii + 1)..(m - r0) {
+                let j = r0 + jj;
+                for s in 0..ns {
+                    d[s] = (sq[s][i] + sq[s][j] - 2.0 * cols[s][jj]).max(0.0).sqrt();
+                }
+                combine(mode, &d, 2.0 * pw[i] * pw[j], fine);
+            }
+        }
+    })
+}
+
+/// L1 / L∞ distances `‖k(x,·) − k(y,·)‖` with the kernel rows evaluated on the quadrature nodes
+/// (weights `pw`, the same points as the pair set).
+fn lp_pairs(
+    rows: MatRef<'_, f64>,
+    nodes: MatRef<'_, f64>,
+    pw: &[f64],
+    weights: &[Vec<f64>],
+    inf: bool,
+    mode: PairMode,
+) -> FineHistogram {
+    let m = rows.nrows();
+    let mz = nodes.nrows();
+    // Kernel rows K[x][z] = Σ_i w_i φ_i(x) φ_i(z), stored as columns of an mz × m matrix.
+    let kr: Vec<Mat<f64>> = weights
+        .iter()
+        .map(|w| {
+            let psi = weighted_embedding(rows, w);
+            let wmax = w.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
+            let keep: Vec<usize> = (0..w.len().min(rows.ncols()))
+                .filter(|&i| w[i] != 0.0 && w[i].abs() >= 1e-8 * wmax)
+                .collect();
+            let z = Mat::from_fn(mz, keep.len(), |r, c| nodes[(r, keep[c])]);
+            let mut k = Mat::<f64>::zeros(mz, m);
+            if !keep.is_empty() {
+                matmul(
+                    k.as_mut(),
+                    Accum::Replace,
+                    z.as_ref(),
+                    psi.as_ref().transpose(),
+                    1.0,
+                    Par::rayon(0),
+                );
+            }
+            k
+        })
+        .collect();
+    let dist = |k: &Mat<f64>, i: usize, j: usize| -> f64 {
+        let (a, b) = (k.col_as_slice(i), k.col_as_slice(j));
+        if inf {
+            a.iter()
+                .zip(b)
+                .fold(0.0f64, |acc, (x, y)| acc.max((x - y).abs()))
+        } else {
+            a.iter()
+                .zip(b)
+                .zip(pw)
+                .map(|((x, y), wz)| wz * (x - y).abs())
+                .sum()
+        }
+    };
+    let per_scale: Vec<f64> = kr
+        .iter()
+        .map(|k| {
+            2.0 * (0..m)
+                .map(|i| {
+                    let a = k.col_as_slice(i);
+                    if inf {
+                        a.iter().fold(0.0f64, |acc, x| acc.max(x.abs()))
+                    } else {
+                        a.iter().zip(pw).map(|(x, wz)| wz * x.abs()).sum()
+                    }
+                })
+                .fold(0.0f64, f64::max)
+        })
+        .collect();
+    let bound = mode_bound(mode, &per_scale);
+    let ns = kr.len();
+    let dw = diag_weight(mode, ns);
+    chunked_pairs(m, bound, |r0, r1, fine| {
+        let mut d = vec![0.0; ns];
+        for i in r0..r1 {
+            fine.add_zero(pw[i] * pw[i] * dw);
+            for j in (i + 1)..m {
+                for (s, k) in kr.iter().enumerate() {
+                    d[s] = dist(k, i, j);
+                }
+                combine(mode, &d, 2.0 * pw[i] * pw[j], fine);
+            }
+        }
+    })
+}
+
+/// Number of bins of the fine histogram a sketch is read from.
+pub(crate) const FINE_BINS: usize = 1 << 16;
+
+/// A fine histogram on `[0, bound]` (65 536 bins) plus an atom at 0 and the exact extremes:
+/// the streaming accumulator from which quantile sketches are read.
+#[derive(Clone, Debug)]
+pub(crate) struct FineHistogram {
+    bins: Vec<f64>,
+    atom0: f64,
+    inv_width: f64,
+    bound: f64,
+    min_pos: f64,
+    max: f64,
+}
+
+impl FineHistogram {
+    pub(crate) fn new(bound: f64) -> Self {
+        let bound = if bound.is_finite() && bound > 0.0 {
+            bound
+        } else {
+            1.0
+        };
+        Self {
+            bins: vec![0.0; FINE_BINS],
+            atom0: 0.0,
+            inv_width: FINE_BINS as f64 / bound,
+            bound,
+            min_pos: f64::INFINITY,
+            max: 0.0,
+        }
+    }
+
+    #[inline]
+    pub(crate) fn add_zero(&mut self, w: f64) {
+        self.atom0 += w;
+    }
+
+    #[inline]
+    pub(crate) fn add(&mut self, d: f64, w: f64) {
+        if d <= 0.0 {
+            self.atom0 += w;
+            return;
+        }
+        let k = ((d * self.inv_width) as usize).min(FINE_BINS - 1);
+        self.bins[k] += w;
+        if d < self.min_pos {
+            self.min_pos = d;
+        }
+        if d > self.max {
+            self.max = d;
+        }
+    }
+
+    pub(crate) fn merge(&mut self, o: &FineHistogram) {
+        for (a, b) in self.bins.iter_mut().zip(&o.bins) {
+            *a += b;
+        }
+        self.atom0 += o.atom0;
+        self.min_pos = self.min_pos.min(o.min_pos);
+        self.max = self.max.max(o.max);
+    }
+
+    /// Quantile sketch with `q` intervals: the CDF is taken linear inside each fine bin (and
+    /// clamped to the exact extremes).
+    pub(crate) fn sketch(&self, q: usize) -> QuantileSketch {
+        let total = self.atom0 + self.bins.iter().sum::<f64>();
+        if total <= 0.0 {
+            return QuantileSketch {
+                mass: 0.0,
+                quantiles: vec![0.0; q + 1],
+            };
+        }
+        let width = self.bound / FINE_BINS as f64;
+        let lo = if self.atom0 > 0.0 || !self.min_pos.is_finite() {
+            0.0
+        } else {
+            self.min_pos
+        };
+        let hi = self.max.max(lo);
+        let mut out = Vec::with_capacity(q + 1);
+        let (mut k, mut cum) = (0usize, self.atom0);
+        for j in 0..=q {
+            let x = if j == 0 {
+                lo
+            } else if j == q {
+                hi
+            } else {
+                let p = total * j as f64 / q as f64;
+                if p <= self.atom0 {
+                    0.0
+                } else {
+                    while k < FINE_BINS && cum + self.bins[k] < p {
+                        cum += self.bins[k];
+                        k += 1;
+                    }
+                    if k >= FINE_BINS {
+                        hi
+                    } else {
+                        let frac = if self.bins[k] > 0.0 {
+                            ((p - cum) / self.bins[k]).clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        };
+                        (k as f64 + frac) * width
+                    }
+                }
+            };
+            let prev = out.last().copied().unwrap_or(lo);
+            out.push(x.clamp(prev, hi));
+        }
+        QuantileSketch {
+            mass: total,
+            quantiles: out,
+        }
+    }
+}
+
+/// The undirected edge graph of a mesh (CSR, Euclidean edge lengths).
+#[derive(Clone, Debug)]
+pub(crate) struct EdgeGraph {
+    pub(crate) offsets: Vec<usize>,
+    pub(crate) nbrs: Vec<u32>,
+    pub(crate) lens: Vec<f64>,
+}
+
+impl EdgeGraph {
+    pub(crate) fn new(mesh: &Mesh) -> Self {
+        let n = mesh.vertices.len();
+        let mut e: Vec<(u32, u32)> = Vec::with_capacity(mesh.faces.len() * 6);
+        for f in &mesh.faces {
+            for k in 0..3 {
+                let (a, b) = (f[k], f[(k + 1) % 3]);
+                if a != b && (a as usize) < n && (b as usize) < n {
+                    e.push((a, b));
+                    e.push((b, a));
+                }
+            }
+        }
+        e.sort_unstable();
+        e.dedup();
+        let mut offsets = vec![0usize; n + 1];
+        for &(a, _) in &e {
+            offsets[a as usize + 1] += 1;
+        }
+        for i in 0..n {
+            offsets[i + 1] += offsets[i];
+        }
+        let nbrs: Vec<u32> = e.iter().map(|&(_, b)| b).collect();
+        let lens = e
+            .iter()
+            .map(|&(a, b)| norm(sub(mesh.vertices[a as usize], mesh.vertices[b as usize])))
+            .collect();
+        Self {
+            offsets,
+            nbrs,
+            lens,
+        }
+    }
+
+    /// Dijkstra from `src`, lowering `dist` only where the new distance is strictly smaller
+    /// (with `owner` set to `id` there): run with `dist = ∞` for a full single-source run, or
+    /// repeatedly for an incremental multi-source (Voronoi) run.
+    pub(crate) fn relax_from(
+        &self,
+        src: usize,
+        dist: &mut [f64],
+        owner: &mut [u32],
+        id: u32,
+        heap: &mut BinaryHeap<Reverse<(u64, u32)>>,
+    ) {
+        heap.clear();
+        dist[src] = 0.0;
+        owner[src] = id;
+        heap.push(Reverse((0f64.to_bits(), src as u32)));
+        while let Some(Reverse((db, v))) = heap.pop() {
+            let d = f64::from_bits(db);
+            let v = v as usize;
+            if d > dist[v] {
+                continue;
+            }
+            for e in self.offsets[v]..self.offsets[v + 1] {
+                let u = self.nbrs[e] as usize;
+                let nd = d + self.lens[e];
+                if nd < dist[u] {
+                    dist[u] = nd;
+                    owner[u] = id;
+                    heap.push(Reverse((nd.to_bits(), u as u32)));
+                }
+            }
+        }
+    }
+}
+
+/// Farthest-point samples (edge-graph geodesic FPS) and their Voronoi assignments at the
+/// requested prefix sizes.
+pub(crate) struct FarthestPoints {
+    pub(crate) samples: Vec<u32>,
+    /// (prefix size, owner of every vertex among the first `prefix` samples).
+    owners: Vec<(usize, Vec<u32>)>,
+}
+
+/// Point set with weights: either sample vertices with their Voronoi-cell areas, or all
+/// vertices with their areas.
+pub(crate) struct Quadrature {
+    /// Sample vertices (`None`: all vertices).
+    points: Option<Vec<u32>>,
+    /// Owner (cell) of every vertex, for cell means.
+    owner: Option<Vec<u32>>,
+    /// Weight of each point (sums to the area).
+    pub(crate) weights: Vec<f64>,
+}
+
+impl Quadrature {
+    fn all_vertices(mass: &[f64]) -> Self {
+        Self {
+            points: None,
+            owner: None,
+            weights: mass.to_vec(),
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.weights.len()
+    }
+
+    /// Eigenmap rows at the points themselves.
+    fn point_rows(&self, phi: MatRef<'_, f64>) -> Mat<f64> {
+        match &self.points {
+            None => phi.to_owned(),
+            Some(p) => Mat::from_fn(p.len(), phi.ncols(), |r, c| phi[(p[r] as usize, c)]),
+        }
+    }
+
+    /// Sample vertex indices (all vertices when the quadrature is exact).
+    pub(crate) fn point_indices(&self) -> Vec<u32> {
+        match &self.points {
+            Some(p) => p.clone(),
+            None => (0..self.weights.len() as u32).collect(),
+        }
+    }
+
+    /// Representative eigenmap rows of the pair points: the sample vertices' rows, or (with
+    /// `cell_means`) the area-weighted mean row of each Voronoi cell.
+    fn rows(&self, phi: MatRef<'_, f64>, mass: &[f64], cell_means: bool) -> Mat<f64> {
+        match (&self.owner, cell_means) {
+            (Some(owner), true) => {
+                let m = self.weights.len();
+                let k = phi.ncols();
+                let mut out = Mat::<f64>::zeros(m, k);
+                for c in 0..k {
+                    let col = phi.col(c);
+                    let o = out.col_as_slice_mut(c);
+                    for (v, &ow) in owner.iter().enumerate() {
+                        if (ow as usize) < m {
+                            o[ow as usize] += mass[v] * col[v];
+                        }
+                    }
+                    for (x, w) in o.iter_mut().zip(&self.weights) {
+                        if *w > 0.0 {
+                            *x /= w;
+                        }
+                    }
+                }
+                out
+            }
+            _ => self.point_rows(phi),
+        }
+    }
+}
+
+impl FarthestPoints {
+    pub(crate) fn quadrature(&self, count: usize, mass: &[f64]) -> Quadrature {
+        let (size, owner) = self
+            .owners
+            .iter()
+            .find(|(s, _)| *s >= count)
+            .or_else(|| self.owners.last())
+            .expect("at least one prefix");
+        let size = (*size).min(self.samples.len());
+        let mut weights = vec![0.0; size];
+        for (v, &o) in owner.iter().enumerate() {
+            if (o as usize) < size {
+                weights[o as usize] += mass[v];
+            }
+        }
+        Quadrature {
+            points: Some(self.samples[..size].to_vec()),
+            owner: Some(owner.clone()),
+            weights,
+        }
+    }
+}
+
+/// Geodesic farthest-point sampling on the edge graph. The first sample is the vertex farthest
+/// (Euclidean) from the area-weighted centroid; each next one is the vertex farthest (graph
+/// distance) from all previous samples (lowest index on exact ties; vertices of components
+/// without a sample are at distance ∞, so every component gets one early). Vertex owners are
+/// snapshotted when the sample count reaches each of `prefixes`.
+pub(crate) fn farthest_points(
+    mesh: &Mesh,
+    graph: &EdgeGraph,
+    prefixes: &[usize],
+) -> FarthestPoints {
+    let n = mesh.vertices.len();
+    let mut wanted: Vec<usize> = prefixes.iter().map(|&p| p.clamp(1, n)).collect();
+    wanted.sort_unstable();
+    wanted.dedup();
+    let total = *wanted.last().unwrap_or(&1);
+    // Area-weighted centroid (vertex areas from the faces).
+    let mut c = [0.0; 3];
+    let mut asum = 0.0;
+    for f in &mesh.faces {
+        let a = crate::mesh::triangle_area(mesh, f);
+        for &v in f {
+            let p = mesh.vertices[v as usize];
+            for k in 0..3 {
+                c[k] += a * p[k];
+            }
+        }
+        asum += 3.0 * a;
+    }
+    if asum > 0.0 {
+        for x in &mut c {
+            *x /= asum;
+        }
+    }
+    let mut start = 0usize;
+    let mut best = -1.0;
+    for (i, p) in mesh.vertices.iter().enumerate() {
+        let d = norm(sub(*p, c));
+        if d > best {
+            best = d;
+            start = i;
+        }
+    }
+    let mut dist = vec![f64::INFINITY; n];
+    let mut owner = vec![u32::MAX; n];
+    let mut heap = BinaryHeap::new();
+    let mut samples = Vec::with_capacity(total);
+    let mut owners = Vec::with_capacity(wanted.len());
+    let mut next = start;
+    while samples.len() < total {
+        let id = samples.len() as u32;
+        samples.push(next as u32);
+        graph.relax_from(next, &mut dist, &mut owner, id, &mut heap);
+        if wanted.contains(&samples.len()) {
+            owners.push((samples.len(), owner.clone()));
+        }
+        // Farthest vertex from the current samples.
+        let mut far = 0usize;
+        let mut fd = -1.0;
+        for (i, &d) in dist.iter().enumerate() {
+            if d > fd {
+                fd = d;
+                far = i;
+            }
+        }
+        if fd <= 0.0 {
+            break;
+        }
+        next = far;
+    }
+    if owners.last().map(|(s, _)| *s) != Some(samples.len()) {
+        owners.push((samples.len(), owner));
+    }
+    FarthestPoints { samples, owners }
+}
+
+const MAGIC: &[u8; 4] = b"SSG1";
+
+impl Signature {
+    /// Compact binary encoding (little endian, exact f64), see [`Signature::from_bytes`].
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let mut w = Vec::with_capacity(64 + self.channels.len() * 4200);
+        w.extend_from_slice(MAGIC);
+        put_str(&mut w, &self.spec_key);
+        put_u64(&mut w, self.vertices as u64);
+        put_f64(&mut w, self.area);
+        put_u64(&mut w, self.quadrature_points as u64);
+        put_u64(&mut w, self.channels.len() as u64);
+        for c in &self.channels {
+            put_str(&mut w, &c.name);
+            match &c.values {
+                ChannelValues::Distribution(s) => {
+                    w.push(0);
+                    put_f64(&mut w, s.mass);
+                    put_f64s(&mut w, &s.quantiles);
+                }
+                ChannelValues::Vector(v) => {
+                    w.push(1);
+                    put_f64s(&mut w, v);
+                }
+            }
+        }
+        w
+    }
+
+    /// Decodes [`Signature::to_bytes`]; malformed input is an [`Error::InvalidArgument`].
+    pub fn from_bytes(b: &[u8]) -> Result<Self> {
+        let mut r = Reader { b, pos: 0 };
+        if r.take(4)? != MAGIC {
+            return Err(Error::InvalidArgument("signature: bad magic".into()));
+        }
+        let spec_key = r.string()?;
+        let vertices = r.u64()? as usize;
+        let area = r.f64()?;
+        let quadrature_points = r.u64()? as usize;
+        let nch = r.u64()? as usize;
+        if nch > b.len() {
+            return Err(Error::InvalidArgument(
+                "signature: bad channel count".into(),
+            ));
+        }
+        let mut channels = Vec::with_capacity(nch);
+        for _ in 0..nch {
+            let name = r.string()?;
+            let tag = r.take(1)?[0];
+            let values = match tag {
+                0 => {
+                    let mass = r.f64()?;
+                    let quantiles = r.f64s()?;
+                    ChannelValues::Distribution(QuantileSketch { mass, quantiles })
+                }
+                1 => ChannelValues::Vector(r.f64s()?),
+                _ => return Err(Error::InvalidArgument("signature: bad channel tag".into())),
+            };
+            channels.push(ChannelData { name, values });
+        }
+        if r.pos != b.len() {
+            return Err(Error::InvalidArgument("signature: trailing bytes".into()));
+        }
+        Ok(Signature {
+            spec_key,
+            channels,
+            vertices,
+            area,
+            quadrature_points,
+        })
+    }
+
+    /// The channel called `name`, if any.
+    pub fn channel(&self, name: &str) -> Option<&ChannelData> {
+        self.channels.iter().find(|c| c.name == name)
+    }
+}
+
+fn put_u64(w: &mut Vec<u8>, v: u64) {
+    w.extend_from_slice(&v.to_le_bytes());
+}
+fn put_f64(w: &mut Vec<u8>, v: f64) {
+    w.extend_from_slice(&v.to_le_bytes());
+}
+fn put_str(w: &mut Vec<u8>, s: &str) {
+    put_u64(w, s.len() as u64);
+    w.extend_from_slice(s.as_bytes());
+}
+fn put_f64s(w: &mut Vec<u8>, v: &[f64]) {
+    put_u64(w, v.len() as u64);
+    for x in v {
+        put_f64(w, *x);
+    }
+}
+
+struct Reader<'a> {
+    b: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8]> {
+        let end = self
+            .pos
+            .checked_add(n)
+            .filter(|&e| e <= self.b.len())
+            .ok_or_else(|| Error::InvalidArgument("signature: truncated".into()))?;
+        let s = &self.b[self.pos..end];
+        self.pos = end;
+        Ok(s)
+    }
+    fn u64(&mut self) -> Result<u64> {
+        let s = self.take(8)?;
+        Ok(u64::from_le_bytes(s.try_into().expect("8 bytes")))
+    }
+    fn f64(&mut self) -> Result<f64> {
+        Ok(f64::from_bits(self.u64()?))
+    }
+    fn string(&mut self) -> Result<String> {
+        let n = self.u64()? as usize;
+        let s = self.take(n)?;
+        String::from_utf8(s.to_vec())
+            .map_err(|_| Error::InvalidArgument("signature: bad utf-8".into()))
+    }
+    fn f64s(&mut self) -> Result<Vec<f64>> {
+        let n = self.u64()? as usize;
+        if n > self.b.len() / 8 {
+            return Err(Error::InvalidArgument("signature: truncated".into()));
+        }
+        (0..n).map(|_| self.f64()).collect()
+    }
+}
