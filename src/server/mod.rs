@@ -35,13 +35,17 @@ pub async fn serve(cfg: ServerConfig) -> Result<()> {
 pub fn init_tracing(format: &str) {
     use tracing_subscriber::EnvFilter;
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stdout());
     let _ = if format == "json" {
         tracing_subscriber::fmt()
             .json()
             .with_env_filter(filter)
             .try_init()
     } else {
-        tracing_subscriber::fmt().with_env_filter(filter).try_init()
+        tracing_subscriber::fmt()
+            .with_ansi(ansi)
+            .with_env_filter(filter)
+            .try_init()
     };
 }
 
