@@ -879,3 +879,22 @@ fn mini_benchmark_nearest_neighbours() {
     assert!(nn * 2 > shapes.len(), "nearest neighbour same class only {nn} of {}", shapes.len());
     s.stop();
 }
+
+/// The OpenAPI enums of the query spec are the library's serialisations.
+#[test]
+fn openapi_enums_match_the_library() {
+    let yaml = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("api/openapi.yaml")).unwrap();
+    let ser = |v: Value| v.as_str().unwrap().to_string();
+    let d: Vec<String> = shapeseek::ranking::Dissimilarity::all()
+        .iter()
+        .map(|d| ser(serde_json::to_value(d).unwrap()))
+        .collect();
+    use shapeseek::signature::Aggregation as A;
+    let a: Vec<String> = [A::Single, A::Sum, A::Sum2, A::Max]
+        .iter()
+        .map(|x| ser(serde_json::to_value(x).unwrap()))
+        .collect();
+    assert!(yaml.contains(&format!("enum: [{}]", d.join(", "))), "Dissimilarity enum: {d:?}");
+    assert!(yaml.contains(&format!("enum: [{}]", a.join(", "))), "Aggregation enum: {a:?}");
+    assert_eq!(shapeseek::server::handlers::OPENAPI_YAML, yaml, "served document is the file");
+}

@@ -39,6 +39,7 @@ pub fn router<E: Engine>(app: Arc<App<E>>) -> Router {
         .fallback(fallback)
         .layer(DefaultBodyLimit::max(app.cfg.max_body_bytes))
         .layer(middleware::map_response(problem_catch_all))
+        .layer(tower_http::catch_panic::CatchPanicLayer::custom(panic_to_problem))
         .layer(middleware::from_fn(metrics_mw))
         .layer(TraceLayer::new_for_http().make_span_with(|req: &Request| {
             let rid = req
@@ -64,6 +65,15 @@ impl MakeRequestId for Counter {
             .ok()
             .map(RequestId::new)
     }
+}
+
+fn panic_to_problem(err: Box<dyn std::any::Any + Send + 'static>) -> Response {
+    let msg = err
+        .downcast_ref::<String>()
+        .map(|s| s.as_str())
+        .or_else(|| err.downcast_ref::<&str>().copied())
+        .unwrap_or("panic");
+    ApiError::internal(format!("handler panicked: {msg}")).into_response()
 }
 
 async fn fallback() -> ApiError {
