@@ -1,13 +1,13 @@
 //! Integration tests of `shapeseek serve`: the real server on an ephemeral port, spoken to over
 //! HTTP with a tiny blocking client (no HTTP client dependency).
 
+use serde_json::{json, Value};
 use shapeseek::index::{migrate, MigrateOutcome, SCHEMA_VERSION};
 use shapeseek::mesh::generate::{bumpy_sphere, bumpy_torus, icosphere, rectangle, torus};
 use shapeseek::mesh::read::Format;
 use shapeseek::mesh::write::write_mesh;
 use shapeseek::mesh::Mesh;
 use shapeseek::server::{start, Running, ServerConfig};
-use serde_json::{json, Value};
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::Path;
@@ -87,7 +87,14 @@ fn parse_response(raw: &[u8]) -> Resp {
         .unwrap_or_else(|| panic!("no header end in {:?}", String::from_utf8_lossy(raw)));
     let head = String::from_utf8_lossy(&raw[..split]).to_string();
     let mut lines = head.split("\r\n");
-    let status: u16 = lines.next().unwrap().split(' ').nth(1).unwrap().parse().unwrap();
+    let status: u16 = lines
+        .next()
+        .unwrap()
+        .split(' ')
+        .nth(1)
+        .unwrap()
+        .parse()
+        .unwrap();
     let headers: Vec<(String, String)> = lines
         .filter_map(|l| l.split_once(':'))
         .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
@@ -132,7 +139,10 @@ fn post_json(addr: SocketAddr, path: &str, v: &Value) -> Resp {
     )
 }
 
-fn multipart(parts: &[(&str, Option<&str>, Option<&str>, &[u8])]) -> (String, Vec<u8>) {
+/// (part name, file name, content type, data).
+type Part<'a> = (&'a str, Option<&'a str>, Option<&'a str>, &'a [u8]);
+
+fn multipart(parts: &[Part]) -> (String, Vec<u8>) {
     let boundary = "----shapeseek-test-boundary-7d1f";
     let mut body = Vec::new();
     for (name, filename, ctype, data) in parts {
@@ -220,12 +230,20 @@ fn corpus() -> Vec<(&'static str, String, Mesh)> {
     vec![
         ("sphere", "sphere-a".into(), icosphere(2)),
         ("sphere", "sphere-b".into(), bumpy_sphere(2, 0.08)),
-        ("sphere", "sphere-c".into(), squash(icosphere(2), 1.0, 1.1, 0.9)),
+        (
+            "sphere",
+            "sphere-c".into(),
+            squash(icosphere(2), 1.0, 1.1, 0.9),
+        ),
         ("torus", "torus-a".into(), torus(1.0, 0.35, 20, 10)),
         ("torus", "torus-b".into(), bumpy_torus(22, 10)),
         ("torus", "torus-c".into(), torus(1.0, 0.35, 24, 12)),
         ("plane", "plane-a".into(), rectangle(1.0, 1.0, 11, 11)),
-        ("plane", "plane-b".into(), bend(rectangle(1.0, 1.0, 12, 12), 0.1)),
+        (
+            "plane",
+            "plane-b".into(),
+            bend(rectangle(1.0, 1.0, 12, 12), 0.1),
+        ),
         ("plane", "plane-c".into(), rectangle(1.0, 1.0, 13, 13)),
     ]
 }
@@ -247,7 +265,10 @@ fn wait_calibrated(addr: SocketAddr, n: u64) -> Value {
         if v["shapes"] == n && v["calibrated_on"] == n {
             return v;
         }
-        assert!(t.elapsed() < Duration::from_secs(60), "never calibrated: {v}");
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "never calibrated: {v}"
+        );
         std::thread::sleep(Duration::from_millis(20));
     }
 }
@@ -288,15 +309,23 @@ fn ingest_every_format_read_back_list_delete() {
     {
         let b = bytes_of(&mesh, format);
         let r = ingest(a, &format!("s{i}"), "fmt,sphere", &b, ctype);
-        assert_eq!(r.status, 201, "{format}: {}", String::from_utf8_lossy(&r.body));
+        assert_eq!(
+            r.status,
+            201,
+            "{format}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
         let v = r.json();
         assert_eq!(v["created"], true);
         assert_eq!(v["shape"]["format"], format.name());
-        assert_eq!(v["shape"]["vertices"], if format == Format::Stl { mesh.vertices.len() } else { mesh.vertices.len() });
+        assert_eq!(v["shape"]["vertices"], mesh.vertices.len());
         assert!(v["timings"]["eigensolve_ms"].as_f64().unwrap() >= 0.0);
         assert_eq!(v["shape"]["prepare"]["components"], 1);
         let id = v["id"].as_str().unwrap().to_string();
-        assert_eq!(r.header("location"), Some(format!("/v1/shapes/{id}").as_str()));
+        assert_eq!(
+            r.header("location"),
+            Some(format!("/v1/shapes/{id}").as_str())
+        );
         // Original bytes back, with the format's content type.
         let m = get(a, &format!("/v1/shapes/{id}/mesh"));
         assert_eq!(m.status, 200);
@@ -314,7 +343,12 @@ fn ingest_every_format_read_back_list_delete() {
     let b = bytes_of(&icosphere(2), Format::Off);
     let (ct, body) = multipart(&[
         ("file", Some("ball.off"), None, &b),
-        ("metadata", None, Some("application/json"), br#"{"name":"ball","tags":["mp","sphere"]}"#),
+        (
+            "metadata",
+            None,
+            Some("application/json"),
+            br#"{"name":"ball","tags":["mp","sphere"]}"#,
+        ),
     ]);
     let r = http(a, "POST", "/v1/shapes", Some(&ct), &body);
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
@@ -328,7 +362,9 @@ fn ingest_every_format_read_back_list_delete() {
     let sig = get(a, &format!("/v1/shapes/{mp_id}/signature"));
     assert_eq!(sig.status, 200);
     let sig = sig.json();
-    let default_channels = shapeseek::ranking::default_config().signature.channel_names();
+    let default_channels = shapeseek::ranking::default_config()
+        .signature
+        .channel_names();
     let names: Vec<String> = sig["signature"]["channels"]
         .as_array()
         .unwrap()
@@ -364,7 +400,10 @@ fn ingest_every_format_read_back_list_delete() {
 
     // Delete: 204, then gone everywhere; the same bytes can be ingested anew.
     let (id0, b0) = &ids[0];
-    assert_eq!(http(a, "DELETE", &format!("/v1/shapes/{id0}"), None, b"").status, 204);
+    assert_eq!(
+        http(a, "DELETE", &format!("/v1/shapes/{id0}"), None, b"").status,
+        204
+    );
     get(a, &format!("/v1/shapes/{id0}")).problem(404, "shape.not_found");
     get(a, &format!("/v1/shapes/{id0}/mesh")).problem(404, "shape.not_found");
     get(a, &format!("/v1/shapes/{id0}/signature")).problem(404, "shape.not_found");
@@ -408,18 +447,42 @@ fn search_by_id_and_by_upload_finds_the_same_class() {
         assert_eq!(hits.len(), 2);
         assert_eq!(hits[0]["rank"], 1);
         assert!(hits[0]["score"].as_f64().unwrap() <= hits[1]["score"].as_f64().unwrap());
-        assert!(hits.iter().all(|h| h["id"] != id.as_str()), "query itself excluded");
-        assert!(hits.iter().all(|h| h["calibration_epoch"] == v["calibration_epoch"]));
-        agree += hits.iter().filter(|h| class_of(h["id"].as_str().unwrap()) == *class).count();
+        assert!(
+            hits.iter().all(|h| h["id"] != id.as_str()),
+            "query itself excluded"
+        );
+        assert!(hits
+            .iter()
+            .all(|h| h["calibration_epoch"] == v["calibration_epoch"]));
+        agree += hits
+            .iter()
+            .filter(|h| class_of(h["id"].as_str().unwrap()) == *class)
+            .count();
     }
-    assert!(agree >= 16, "same-class hits among the best 2: {agree} of 18");
+    assert!(
+        agree >= 16,
+        "same-class hits among the best 2: {agree} of 18"
+    );
 
     // By upload of a new variant (raw and multipart): best hit of the same class.
-    let query = bytes_of(&squash(torus(1.0, 0.35, 18, 9), 1.05, 1.0, 1.0), Format::Ply);
-    let r = http(a, "POST", "/v1/search?top_k=3", Some("application/ply"), &query);
+    let query = bytes_of(
+        &squash(torus(1.0, 0.35, 18, 9), 1.05, 1.0, 1.0),
+        Format::Ply,
+    );
+    let r = http(
+        a,
+        "POST",
+        "/v1/search?top_k=3",
+        Some("application/ply"),
+        &query,
+    );
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let v = r.json();
-    assert_eq!(class_of(v["hits"][0]["id"].as_str().unwrap()), "torus", "{v}");
+    assert_eq!(
+        class_of(v["hits"][0]["id"].as_str().unwrap()),
+        "torus",
+        "{v}"
+    );
     assert!(v["timings"]["analysis"]["eigensolve_ms"].is_number());
 
     let query = bytes_of(&bend(rectangle(1.0, 1.0, 10, 10), 0.05), Format::Stl);
@@ -438,7 +501,11 @@ fn search_by_id_and_by_upload_finds_the_same_class() {
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let v = r.json();
     assert_eq!(v["stages"], json!(["scan", "exact"]));
-    assert_eq!(class_of(v["hits"][0]["id"].as_str().unwrap()), "plane", "{v}");
+    assert_eq!(
+        class_of(v["hits"][0]["id"].as_str().unwrap()),
+        "plane",
+        "{v}"
+    );
     for h in v["hits"].as_array().unwrap() {
         let st = h["stage_scores"].as_array().unwrap();
         assert_eq!(st.len(), 2);
@@ -456,13 +523,25 @@ fn search_by_id_and_by_upload_finds_the_same_class() {
     )
     .json();
     assert_eq!(v["hits"].as_array().unwrap().len(), 3);
-    assert!(v["hits"].as_array().unwrap().iter().all(|h| class_of(h["id"].as_str().unwrap()) == "torus"));
+    assert!(v["hits"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .all(|h| class_of(h["id"].as_str().unwrap()) == "torus"));
     assert_eq!(v["spec"]["aggregation"], "max");
     assert_eq!(v["candidates"], 3);
-    post_json(a, "/v1/search", &json!({"id": sphere, "spec": {"channels": ["nope"]}}))
-        .problem(400, "request.invalid");
-    post_json(a, "/v1/search", &json!({"id": sphere, "rerank": [{"stage": "sgw"}]}))
-        .problem(400, "request.invalid");
+    post_json(
+        a,
+        "/v1/search",
+        &json!({"id": sphere, "spec": {"channels": ["nope"]}}),
+    )
+    .problem(400, "request.invalid");
+    post_json(
+        a,
+        "/v1/search",
+        &json!({"id": sphere, "rerank": [{"stage": "sgw"}]}),
+    )
+    .problem(400, "request.invalid");
     post_json(a, "/v1/search", &json!({"id": sphere, "top_k": 0})).problem(400, "request.invalid");
     s.stop();
 }
@@ -510,7 +589,11 @@ fn ranking_equals_library_ranking() {
         .iter()
         .map(|(.., bytes)| {
             let mesh = shapeseek::mesh::read::read_mesh(bytes, None, &Default::default()).unwrap();
-            compute_signature(&shapeseek::pipeline::analyze(&mesh, &opts).unwrap(), &cfg.signature).unwrap()
+            compute_signature(
+                &shapeseek::pipeline::analyze(&mesh, &opts).unwrap(),
+                &cfg.signature,
+            )
+            .unwrap()
         })
         .collect();
     // The served JSON agrees (up to JSON float parsing); the stored bytes are checked exactly
@@ -520,7 +603,10 @@ fn ranking_equals_library_ranking() {
             get(a, &format!("/v1/shapes/{id}/signature")).json()["signature"].clone(),
         )
         .unwrap();
-        assert!(max_sig_diff(&served, local) <= 1e-12, "signature of {id} differs");
+        assert!(
+            max_sig_diff(&served, local) <= 1e-12,
+            "signature of {id} differs"
+        );
     }
 
     let refs: Vec<&Signature> = sigs.iter().collect();
@@ -529,7 +615,11 @@ fn ranking_equals_library_ranking() {
     let specs: Vec<(QuerySpec, Value)> = vec![
         (cfg.query.clone(), json!(null)),
         (
-            QuerySpec { aggregation: shapeseek::signature::Aggregation::Max, dissimilarity: shapeseek::ranking::Dissimilarity::Emd, ..cfg.query.clone() },
+            QuerySpec {
+                aggregation: shapeseek::signature::Aggregation::Max,
+                dissimilarity: shapeseek::ranking::Dissimilarity::Emd,
+                ..cfg.query.clone()
+            },
             json!({"aggregation": "max", "dissimilarity": "emd"}),
         ),
     ];
@@ -548,7 +638,12 @@ fn ranking_equals_library_ranking() {
                 .as_array()
                 .unwrap()
                 .iter()
-                .map(|h| (h["score"].as_f64().unwrap(), h["id"].as_str().unwrap().to_string()))
+                .map(|h| {
+                    (
+                        h["score"].as_f64().unwrap(),
+                        h["id"].as_str().unwrap().to_string(),
+                    )
+                })
                 .collect();
             assert_eq!(got.len(), expected.len());
             for ((gs, gid), (es, ej)) in got.iter().zip(&expected) {
@@ -561,7 +656,10 @@ fn ranking_equals_library_ranking() {
     let store = shapeseek::index::Store::open(dir.path()).unwrap();
     for ((id, ..), local) in shapes.iter().zip(&sigs) {
         let stored = Signature::from_bytes(&store.signature(id).unwrap().unwrap()).unwrap();
-        assert_eq!(&stored, local, "stored signature of {id} differs from the library's");
+        assert_eq!(
+            &stored, local,
+            "stored signature of {id} differs from the library's"
+        );
     }
 }
 
@@ -570,13 +668,30 @@ fn concurrent_ingest_and_search() {
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |c| c.queue_capacity = 64);
     let a = s.addr;
-    let seed = ingest(a, "seed", "", &bytes_of(&icosphere(2), Format::Obj), "model/obj");
+    let seed = ingest(
+        a,
+        "seed",
+        "",
+        &bytes_of(&icosphere(2), Format::Obj),
+        "model/obj",
+    );
     let seed_id = seed.json()["id"].as_str().unwrap().to_string();
     let writers: Vec<_> = (0..6)
         .map(|i| {
             std::thread::spawn(move || {
-                let m = squash(bumpy_sphere(2, 0.02 * (i + 1) as f64), 1.0 + 0.05 * i as f64, 1.0, 1.0);
-                let r = ingest(a, &format!("w{i}"), "", &bytes_of(&m, Format::Obj), "model/obj");
+                let m = squash(
+                    bumpy_sphere(2, 0.02 * (i + 1) as f64),
+                    1.0 + 0.05 * i as f64,
+                    1.0,
+                    1.0,
+                );
+                let r = ingest(
+                    a,
+                    &format!("w{i}"),
+                    "",
+                    &bytes_of(&m, Format::Obj),
+                    "model/obj",
+                );
                 assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
                 r.json()["id"].as_str().unwrap().to_string()
             })
@@ -612,21 +727,34 @@ fn restart_keeps_shapes_and_calibration() {
     let s = Server::start(dir.path(), |_| {});
     let shapes = ingest_corpus(s.addr);
     let before = get(s.addr, "/v1/index").json();
-    let hits_before = post_json(s.addr, "/v1/search", &json!({"id": shapes[0].0, "top_k": 4})).json()["hits"].clone();
+    let hits_before = post_json(
+        s.addr,
+        "/v1/search",
+        &json!({"id": shapes[0].0, "top_k": 4}),
+    )
+    .json()["hits"]
+        .clone();
     s.stop();
 
     let s = Server::start(dir.path(), |_| {});
     let a = s.addr;
     let after = get(a, "/v1/index").json();
     assert_eq!(after["shapes"], 9);
-    assert_eq!(after["calibration_epoch"], before["calibration_epoch"], "calibration persisted");
+    assert_eq!(
+        after["calibration_epoch"], before["calibration_epoch"],
+        "calibration persisted"
+    );
     for (id, _, name, bytes) in &shapes {
-        assert_eq!(get(a, &format!("/v1/shapes/{id}")).json()["name"], name.as_str());
+        assert_eq!(
+            get(a, &format!("/v1/shapes/{id}")).json()["name"],
+            name.as_str()
+        );
         assert_eq!(&get(a, &format!("/v1/shapes/{id}/mesh")).body, bytes);
         // Idempotency survives the restart.
         assert_eq!(ingest(a, "x", "", bytes, "model/obj").status, 200);
     }
-    let hits_after = post_json(a, "/v1/search", &json!({"id": shapes[0].0, "top_k": 4})).json()["hits"].clone();
+    let hits_after =
+        post_json(a, "/v1/search", &json!({"id": shapes[0].0, "top_k": 4})).json()["hits"].clone();
     assert_eq!(hits_before, hits_after);
     s.stop();
 }
@@ -639,13 +767,32 @@ fn bad_input_is_problem_json() {
         c.max_vertices = 500;
     });
     let a = s.addr;
-    ingest(a, "x", "", b"\x00\x01\x02 definitely not a mesh", "application/octet-stream")
-        .problem(415, "mesh.format");
-    ingest(a, "x", "", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "model/obj").problem(422, "mesh.parse");
+    ingest(
+        a,
+        "x",
+        "",
+        b"\x00\x01\x02 definitely not a mesh",
+        "application/octet-stream",
+    )
+    .problem(415, "mesh.format");
+    ingest(
+        a,
+        "x",
+        "",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n",
+        "model/obj",
+    )
+    .problem(422, "mesh.parse");
     ingest(a, "x", "", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n", "model/obj").problem(422, "mesh.empty");
     ingest(a, "x", "", b"", "model/obj").problem(422, "mesh.empty");
-    ingest(a, "x", "", b"OFF\n3 1 0\n0 0 0\n1 0 0\nnan 1 0\n3 0 1 2\n", "application/off")
-        .problem(422, "mesh.non_finite");
+    ingest(
+        a,
+        "x",
+        "",
+        b"OFF\n3 1 0\n0 0 0\n1 0 0\nnan 1 0\n3 0 1 2\n",
+        "application/off",
+    )
+    .problem(422, "mesh.non_finite");
     // Limits.
     let big = bytes_of(&icosphere(4), Format::Obj); // 2562 vertices, > 200 kB
     assert!(big.len() > 200_000);
@@ -654,17 +801,53 @@ fn bad_input_is_problem_json() {
     assert!(many.len() < 200_000);
     ingest(a, "x", "", &many, "application/ply").problem(413, "limit.vertices");
     // Request errors.
-    http(a, "POST", "/v1/shapes?format=xyz", Some("model/obj"), b"v 0 0 0").problem(400, "request.invalid");
-    http(a, "POST", "/v1/shapes?name=", Some("model/obj"), b"v 0 0 0\n").problem(400, "request.invalid");
-    http(a, "POST", "/v1/search", Some("application/json"), b"{not json").problem(400, "request.invalid");
+    http(
+        a,
+        "POST",
+        "/v1/shapes?format=xyz",
+        Some("model/obj"),
+        b"v 0 0 0",
+    )
+    .problem(400, "request.invalid");
+    http(
+        a,
+        "POST",
+        "/v1/shapes?name=",
+        Some("model/obj"),
+        b"v 0 0 0\n",
+    )
+    .problem(400, "request.invalid");
+    http(
+        a,
+        "POST",
+        "/v1/search",
+        Some("application/json"),
+        b"{not json",
+    )
+    .problem(400, "request.invalid");
     post_json(a, "/v1/search", &json!({"top_k": 3})).problem(400, "request.invalid");
     post_json(a, "/v1/search", &json!({"id": "x", "unknown": 1})).problem(400, "request.invalid");
     post_json(a, "/v1/search", &json!({"id": "0000000000000099"})).problem(404, "shape.not_found");
     let (ct, body) = multipart(&[("metadata", None, None, b"{}")]);
     http(a, "POST", "/v1/shapes", Some(&ct), &body).problem(400, "request.invalid");
-    let (ct, body) = multipart(&[("file", Some("a.obj"), None, b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"), ("metadata", None, None, b"{\"nme\":1}")]);
+    let (ct, body) = multipart(&[
+        (
+            "file",
+            Some("a.obj"),
+            None,
+            b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        ),
+        ("metadata", None, None, b"{\"nme\":1}"),
+    ]);
     http(a, "POST", "/v1/shapes", Some(&ct), &body).problem(400, "request.invalid");
-    http(a, "POST", "/v1/shapes", Some("multipart/form-data"), b"garbage").problem(400, "request.invalid");
+    http(
+        a,
+        "POST",
+        "/v1/shapes",
+        Some("multipart/form-data"),
+        b"garbage",
+    )
+    .problem(400, "request.invalid");
     get(a, "/v1/shapes?limit=abc").problem(400, "request.invalid");
     get(a, "/v1/shapes?limit=0").problem(400, "request.invalid");
     get(a, "/nope").problem(404, "route.not_found");
@@ -696,7 +879,11 @@ fn full_queue_answers_503_with_retry_after() {
     let ok = resps.iter().filter(|r| r.status == 201).count();
     let busy: Vec<&Resp> = resps.iter().filter(|r| r.status == 503).collect();
     assert!(ok >= 1, "one ingest ran");
-    assert!(!busy.is_empty(), "statuses: {:?}", resps.iter().map(|r| r.status).collect::<Vec<_>>());
+    assert!(
+        !busy.is_empty(),
+        "statuses: {:?}",
+        resps.iter().map(|r| r.status).collect::<Vec<_>>()
+    );
     for b in busy {
         b.problem(503, "server.busy");
         assert_eq!(b.header("retry-after"), Some("7"));
@@ -709,24 +896,42 @@ fn full_queue_answers_503_with_retry_after() {
 fn schema_versions_are_checked() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("idx");
-    assert_eq!(migrate(&data).unwrap(), MigrateOutcome::Created(SCHEMA_VERSION));
-    assert_eq!(migrate(&data).unwrap(), MigrateOutcome::UpToDate(SCHEMA_VERSION));
+    assert_eq!(
+        migrate(&data).unwrap(),
+        MigrateOutcome::Created(SCHEMA_VERSION)
+    );
+    assert_eq!(
+        migrate(&data).unwrap(),
+        MigrateOutcome::UpToDate(SCHEMA_VERSION)
+    );
     // A newer version: serve and migrate refuse, and leave it as it was.
     shapeseek::index::migrate::stamp_version(&data, SCHEMA_VERSION + 1).unwrap();
     let e = migrate(&data).unwrap_err().to_string();
     assert!(e.contains("newer"), "{e}");
-    let e = shapeseek::index::Store::open(&data).err().unwrap().to_string();
+    let e = shapeseek::index::Store::open(&data)
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("newer"), "{e}");
     // An older version without an upgrade path: refused, pointing at migrate / no path.
     shapeseek::index::migrate::stamp_version(&data, 0).unwrap();
-    let e = shapeseek::index::Store::open(&data).err().unwrap().to_string();
+    let e = shapeseek::index::Store::open(&data)
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("shapeseek migrate"), "{e}");
     let e = migrate(&data).unwrap_err().to_string();
     assert!(e.contains("no upgrade path"), "{e}");
     // Nothing was backed up when nothing could be done.
     let backups = std::fs::read_dir(dir.path())
         .unwrap()
-        .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().contains("backup"))
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .contains("backup")
+        })
         .count();
     assert_eq!(backups, 0);
 }
@@ -736,7 +941,10 @@ fn child_addr(stdout: &mut impl std::io::BufRead) -> SocketAddr {
     let mut line = String::new();
     loop {
         line.clear();
-        assert!(stdout.read_line(&mut line).unwrap() > 0, "server exited before listening");
+        assert!(
+            stdout.read_line(&mut line).unwrap() > 0,
+            "server exited before listening"
+        );
         if let Some(i) = line.find("\"addr\":\"") {
             let rest = &line[i + 8..];
             return rest[..rest.find('"').unwrap()].parse().unwrap();
@@ -746,7 +954,14 @@ fn child_addr(stdout: &mut impl std::io::BufRead) -> SocketAddr {
 
 fn spawn_child(data: &Path) -> (std::process::Child, SocketAddr) {
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_shapeseek"))
-        .args(["serve", "--addr", "127.0.0.1:0", "--log-format", "json", "--data"])
+        .args([
+            "serve",
+            "--addr",
+            "127.0.0.1:0",
+            "--log-format",
+            "json",
+            "--data",
+        ])
         .arg(data)
         .env("SHAPESEEK_EIGENPAIRS", K.to_string())
         .env("SHAPESEEK_WORKERS", "2")
@@ -812,7 +1027,11 @@ fn sigkill_during_ingest_leaves_a_consistent_index() {
     child.wait().unwrap();
     workers.into_iter().for_each(|w| w.join().unwrap());
     let acked = acked.lock().unwrap().clone();
-    assert!(acked.len() >= 4, "only {} acknowledged before the deadline", acked.len());
+    assert!(
+        acked.len() >= 4,
+        "only {} acknowledged before the deadline",
+        acked.len()
+    );
 
     let (mut child, a) = spawn_child(&data);
     for (id, bytes) in &acked {
@@ -830,14 +1049,28 @@ fn sigkill_during_ingest_leaves_a_consistent_index() {
     assert!(items.len() >= acked.len());
     for it in items {
         let id = it["id"].as_str().unwrap();
-        assert_eq!(get(a, &format!("/v1/shapes/{id}/mesh")).status, 200, "{id} without its mesh");
-        assert_eq!(get(a, &format!("/v1/shapes/{id}/signature")).status, 200, "{id} without its signature");
+        assert_eq!(
+            get(a, &format!("/v1/shapes/{id}/mesh")).status,
+            200,
+            "{id} without its mesh"
+        );
+        assert_eq!(
+            get(a, &format!("/v1/shapes/{id}/signature")).status,
+            200,
+            "{id} without its signature"
+        );
     }
     let info = get(a, "/v1/index").json();
     assert_eq!(info["shapes"].as_u64().unwrap() as usize, items.len());
-    eprintln!("sigkill: {} acknowledged, {} stored after restart", acked.len(), items.len());
+    eprintln!(
+        "sigkill: {} acknowledged, {} stored after restart",
+        acked.len(),
+        items.len()
+    );
     // Graceful stop via SIGTERM.
-    let _ = std::process::Command::new("kill").args(["-TERM", &child.id().to_string()]).status();
+    let _ = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
     let status = child.wait().unwrap();
     assert!(status.success(), "SIGTERM exit: {status}");
 }
@@ -848,7 +1081,10 @@ fn mini_benchmark_nearest_neighbours() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/bench/mini");
     let manifest = root.join("manifest.csv");
     if !manifest.exists() {
-        println!("SKIPPED mini_benchmark_nearest_neighbours: {} not found", manifest.display());
+        println!(
+            "SKIPPED mini_benchmark_nearest_neighbours: {} not found",
+            manifest.display()
+        );
         return;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -862,11 +1098,20 @@ fn mini_benchmark_nearest_neighbours() {
         let bytes = std::fs::read(root.join(path)).unwrap();
         let r = ingest(a, id, class, &bytes, "model/obj");
         assert_eq!(r.status, 201, "{id}: {}", String::from_utf8_lossy(&r.body));
-        shapes.push((r.json()["id"].as_str().unwrap().to_string(), class.to_string()));
+        shapes.push((
+            r.json()["id"].as_str().unwrap().to_string(),
+            class.to_string(),
+        ));
     }
     // 24 after 23 is within the 10% recalibration band: any calibration will do here.
     assert_eq!(get(a, "/v1/index").json()["shapes"], shapes.len());
-    let class_of = |id: &str| shapes.iter().find(|s| s.0 == id).map(|s| s.1.clone()).unwrap();
+    let class_of = |id: &str| {
+        shapes
+            .iter()
+            .find(|s| s.0 == id)
+            .map(|s| s.1.clone())
+            .unwrap()
+    };
     let mut nn = 0;
     for (id, class) in &shapes {
         let v = post_json(a, "/v1/search", &json!({"id": id, "top_k": 1})).json();
@@ -874,16 +1119,25 @@ fn mini_benchmark_nearest_neighbours() {
             nn += 1;
         }
     }
-    println!("mini benchmark: nearest neighbour of the same class for {nn} of {}", shapes.len());
+    println!(
+        "mini benchmark: nearest neighbour of the same class for {nn} of {}",
+        shapes.len()
+    );
     // Chance is about 7/23; the product default must do clearly better.
-    assert!(nn * 2 > shapes.len(), "nearest neighbour same class only {nn} of {}", shapes.len());
+    assert!(
+        nn * 2 > shapes.len(),
+        "nearest neighbour same class only {nn} of {}",
+        shapes.len()
+    );
     s.stop();
 }
 
 /// The OpenAPI enums of the query spec are the library's serialisations.
 #[test]
 fn openapi_enums_match_the_library() {
-    let yaml = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("api/openapi.yaml")).unwrap();
+    let yaml =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("api/openapi.yaml"))
+            .unwrap();
     let ser = |v: Value| v.as_str().unwrap().to_string();
     let d: Vec<String> = shapeseek::ranking::Dissimilarity::all()
         .iter()
@@ -894,7 +1148,17 @@ fn openapi_enums_match_the_library() {
         .iter()
         .map(|x| ser(serde_json::to_value(x).unwrap()))
         .collect();
-    assert!(yaml.contains(&format!("enum: [{}]", d.join(", "))), "Dissimilarity enum: {d:?}");
-    assert!(yaml.contains(&format!("enum: [{}]", a.join(", "))), "Aggregation enum: {a:?}");
-    assert_eq!(shapeseek::server::handlers::OPENAPI_YAML, yaml, "served document is the file");
+    assert!(
+        yaml.contains(&format!("enum: [{}]", d.join(", "))),
+        "Dissimilarity enum: {d:?}"
+    );
+    assert!(
+        yaml.contains(&format!("enum: [{}]", a.join(", "))),
+        "Aggregation enum: {a:?}"
+    );
+    assert_eq!(
+        shapeseek::server::handlers::OPENAPI_YAML,
+        yaml,
+        "served document is the file"
+    );
 }

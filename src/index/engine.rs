@@ -35,9 +35,9 @@ pub trait Engine: Send + Sync + 'static {
     /// The spec key a signature was computed with.
     fn signature_spec_key(&self, sig: &Self::Signature) -> String;
     /// Serialises a signature for the `signatures` tree.
-    fn to_bytes(&self, sig: &Self::Signature) -> Vec<u8>;
+    fn encode_signature(&self, sig: &Self::Signature) -> Vec<u8>;
     /// Reads a stored signature back.
-    fn from_bytes(&self, bytes: &[u8]) -> Result<Self::Signature>;
+    fn decode_signature(&self, bytes: &[u8]) -> Result<Self::Signature>;
     /// The distributions of a signature as JSON (for `GET /v1/shapes/{id}/signature`).
     fn signature_json(&self, sig: &Self::Signature) -> serde_json::Value;
     /// Calibrates the histogram ranges on a set of signatures.

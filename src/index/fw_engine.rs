@@ -68,10 +68,10 @@ impl Engine for FwEngine {
         // spec, and the record's spec_key (checked at load) covers the analysis options.
         format!("{}-k{}", sig.spec_key, self.analyze.eigen.k)
     }
-    fn to_bytes(&self, sig: &Signature) -> Vec<u8> {
+    fn encode_signature(&self, sig: &Signature) -> Vec<u8> {
         sig.to_bytes()
     }
-    fn from_bytes(&self, bytes: &[u8]) -> Result<Signature> {
+    fn decode_signature(&self, bytes: &[u8]) -> Result<Signature> {
         Signature::from_bytes(bytes)
     }
     fn signature_json(&self, sig: &Signature) -> serde_json::Value {

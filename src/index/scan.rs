@@ -10,6 +10,9 @@ use rayon::prelude::*;
 use std::collections::HashMap;
 use std::sync::Arc;
 
+/// A shape to index: (id, name, tags, signature).
+pub type ShapeRow<E> = (String, String, Vec<String>, Arc<<E as Engine>::Signature>);
+
 /// One indexed shape.
 pub struct Entry<E: Engine> {
     /// Shape id.
@@ -54,8 +57,16 @@ pub struct Scored {
 
 /// Orders by score (NaN last), then by scan position (ingest order) for determinism.
 pub fn by_score(a: &Scored, b: &Scored) -> std::cmp::Ordering {
-    let ka = if a.score.is_nan() { f64::INFINITY } else { a.score };
-    let kb = if b.score.is_nan() { f64::INFINITY } else { b.score };
+    let ka = if a.score.is_nan() {
+        f64::INFINITY
+    } else {
+        a.score
+    };
+    let kb = if b.score.is_nan() {
+        f64::INFINITY
+    } else {
+        b.score
+    };
     ka.total_cmp(&kb).then(a.at.cmp(&b.at))
 }
 
@@ -95,7 +106,7 @@ impl<E: Engine> ScanIndex<E> {
         engine: &E,
         cal: Arc<E::Calibration>,
         calibrated_on: usize,
-        shapes: Vec<(String, String, Vec<String>, Arc<E::Signature>)>,
+        shapes: Vec<ShapeRow<E>>,
     ) -> Self {
         let prepared: Vec<E::Prepared> = shapes
             .par_iter()

@@ -180,7 +180,10 @@ impl Store {
 
     /// A fresh id (monotonic, 16 hex digits).
     pub fn new_id(&self) -> Result<String> {
-        Ok(format!("{:016x}", self.db.generate_id().map_err(storage_err)?))
+        Ok(format!(
+            "{:016x}",
+            self.db.generate_id().map_err(storage_err)?
+        ))
     }
 
     /// Writes one shape (record, signature, original, hash entry) in one transaction, then
@@ -356,14 +359,18 @@ impl Store {
 
     /// Sets a `meta` value and flushes.
     pub fn meta_set(&self, key: &str, value: &[u8]) -> Result<()> {
-        self.meta.insert(key.as_bytes(), value).map_err(storage_err)?;
+        self.meta
+            .insert(key.as_bytes(), value)
+            .map_err(storage_err)?;
         self.db.flush().map_err(storage_err)?;
         Ok(())
     }
 
     /// Stores the calibration JSON.
     pub fn set_calibration(&self, json: &[u8]) -> Result<()> {
-        self.meta.insert(KEY_CALIBRATION, json).map_err(storage_err)?;
+        self.meta
+            .insert(KEY_CALIBRATION, json)
+            .map_err(storage_err)?;
         self.db.flush().map_err(storage_err)?;
         Ok(())
     }

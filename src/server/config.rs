@@ -71,7 +71,11 @@ impl ServerConfig {
     ) -> Result<Self> {
         let mut table = match toml::Value::try_from(ServerConfig::default()) {
             Ok(toml::Value::Table(t)) => t,
-            _ => return Err(Error::InvalidArgument("config: cannot serialise defaults".into())),
+            _ => {
+                return Err(Error::InvalidArgument(
+                    "config: cannot serialise defaults".into(),
+                ))
+            }
         };
         if let Some(path) = file {
             let text = std::fs::read_to_string(path).map_err(|e| {
@@ -226,10 +230,16 @@ impl MigrateArgs {
         let dir = self.data_dir();
         Ok(match crate::index::migrate(&dir)? {
             crate::index::MigrateOutcome::Created(v) => {
-                format!("created a new index at {} (schema version {v})", dir.display())
+                format!(
+                    "created a new index at {} (schema version {v})",
+                    dir.display()
+                )
             }
             crate::index::MigrateOutcome::UpToDate(v) => {
-                format!("index at {} is up to date (schema version {v})", dir.display())
+                format!(
+                    "index at {} is up to date (schema version {v})",
+                    dir.display()
+                )
             }
             crate::index::MigrateOutcome::Upgraded { from, to, backup } => format!(
                 "upgraded index at {} from schema version {from} to {to}; backup at {}",

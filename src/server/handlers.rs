@@ -103,9 +103,13 @@ async fn read_raw<E: Engine>(
     hint: Option<Format>,
 ) -> Result<(Bytes, Option<Format>), ApiError> {
     let hint = hint.or_else(|| content_type(req.headers()).and_then(|c| Format::from_mime(&c)));
-    let body = Bytes::from_request(req, app)
-        .await
-        .map_err(|e| ApiError::new(e.status(), super::problem::code_for_status(e.status()), e.body_text()))?;
+    let body = Bytes::from_request(req, app).await.map_err(|e| {
+        ApiError::new(
+            e.status(),
+            super::problem::code_for_status(e.status()),
+            e.body_text(),
+        )
+    })?;
     if body.is_empty() {
         return Err(ApiError::new(
             StatusCode::UNPROCESSABLE_ENTITY,
@@ -122,13 +126,21 @@ async fn read_multipart<E: Engine>(
     req: Request,
     json_part: &str,
 ) -> Result<(Bytes, Option<Format>, Option<Bytes>), ApiError> {
-    let mut mp = Multipart::from_request(req, app)
-        .await
-        .map_err(|e| ApiError::new(e.status(), super::problem::code_for_status(e.status()), e.body_text()))?;
+    let mut mp = Multipart::from_request(req, app).await.map_err(|e| {
+        ApiError::new(
+            e.status(),
+            super::problem::code_for_status(e.status()),
+            e.body_text(),
+        )
+    })?;
     let mut file = None;
     let mut json = None;
     let mp_err = |e: axum::extract::multipart::MultipartError| {
-        ApiError::new(e.status(), super::problem::code_for_status(e.status()), e.body_text())
+        ApiError::new(
+            e.status(),
+            super::problem::code_for_status(e.status()),
+            e.body_text(),
+        )
     };
     while let Some(field) = mp.next_field().await.map_err(mp_err)? {
         let name = field.name().unwrap_or("").to_string();
@@ -311,7 +323,10 @@ pub async fn get_signature<E: Engine>(
         .signature(&id)
         .map_err(ApiError::internal)?
         .ok_or_else(|| ApiError::not_found(&id))?;
-    let sig = app.engine.from_bytes(&bytes).map_err(ApiError::internal)?;
+    let sig = app
+        .engine
+        .decode_signature(&bytes)
+        .map_err(ApiError::internal)?;
     Ok(Json(serde_json::json!({
         "id": id,
         "spec_key": app.engine.signature_spec_key(&sig),
@@ -330,11 +345,21 @@ pub async fn search<E: Engine>(
     let res = if is_json(&headers) {
         let Json(opts) = Json::<SearchOptions>::from_request(req, &app)
             .await
-            .map_err(|e| ApiError::new(
-                if e.status() == StatusCode::PAYLOAD_TOO_LARGE { e.status() } else { StatusCode::BAD_REQUEST },
-                if e.status() == StatusCode::PAYLOAD_TOO_LARGE { "limit.bytes" } else { "request.invalid" },
-                e.body_text(),
-            ))?;
+            .map_err(|e| {
+                ApiError::new(
+                    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                        e.status()
+                    } else {
+                        StatusCode::BAD_REQUEST
+                    },
+                    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                        "limit.bytes"
+                    } else {
+                        "request.invalid"
+                    },
+                    e.body_text(),
+                )
+            })?;
         if opts.id.is_none() {
             return Err(ApiError::invalid(
                 "a JSON search needs \"id\"; to search by example upload the mesh (raw body or multipart)",
@@ -344,16 +369,24 @@ pub async fn search<E: Engine>(
     } else if is_multipart(&headers) {
         let (bytes, hint, query) = read_multipart(&app, req, "query").await?;
         let opts: SearchOptions = match query {
-            Some(b) => serde_json::from_slice(&b)
-                .map_err(|e| ApiError::invalid(format!("query: {e}")))?,
+            Some(b) => {
+                serde_json::from_slice(&b).map_err(|e| ApiError::invalid(format!("query: {e}")))?
+            }
             None => SearchOptions::default(),
         };
         if opts.id.is_some() {
-            return Err(ApiError::invalid("give either an uploaded file or an id, not both"));
+            return Err(ApiError::invalid(
+                "give either an uploaded file or an id, not both",
+            ));
         }
         let hint = format_param(params.format.as_deref())?.or(hint);
         let q = app
-            .analyze_query(Upload { bytes, hint, name: None, tags: Vec::new() })
+            .analyze_query(Upload {
+                bytes,
+                hint,
+                name: None,
+                tags: Vec::new(),
+            })
             .await?;
         app.search(opts, Some(q)).await?
     } else {
@@ -368,11 +401,19 @@ pub async fn search<E: Engine>(
         validate_tags(&opts.tags)?;
         if let Some(k) = opts.top_k {
             if k == 0 || k > app.cfg.max_top_k {
-                return Err(ApiError::invalid(format!("top_k must be in 1..={}", app.cfg.max_top_k)));
+                return Err(ApiError::invalid(format!(
+                    "top_k must be in 1..={}",
+                    app.cfg.max_top_k
+                )));
             }
         }
         let q = app
-            .analyze_query(Upload { bytes, hint, name: None, tags: Vec::new() })
+            .analyze_query(Upload {
+                bytes,
+                hint,
+                name: None,
+                tags: Vec::new(),
+            })
             .await?;
         app.search(opts, Some(q)).await?
     };
@@ -438,7 +479,10 @@ pub async fn metrics<E: Engine>(State(app): AppState<E>) -> Response {
     app.update_gauges();
     let body = app.metrics.as_ref().map(|h| h.render()).unwrap_or_default();
     (
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4; charset=utf-8")],
+        [(
+            header::CONTENT_TYPE,
+            "text/plain; version=0.0.4; charset=utf-8",
+        )],
         body,
     )
         .into_response()

@@ -22,10 +22,7 @@ pub fn handle() -> Option<PrometheusHandle> {
                 60.0,
             ];
             let builder = PrometheusBuilder::new()
-                .set_buckets_for_metric(
-                    Matcher::Suffix("_seconds".into()),
-                    &buckets,
-                )
+                .set_buckets_for_metric(Matcher::Suffix("_seconds".into()), &buckets)
                 .ok()?;
             let recorder = builder.build_recorder();
             let handle = recorder.handle();
@@ -37,7 +34,10 @@ pub fn handle() -> Option<PrometheusHandle> {
 }
 
 fn describe() {
-    metrics::describe_counter!("shapeseek_http_requests_total", "HTTP requests by route and status");
+    metrics::describe_counter!(
+        "shapeseek_http_requests_total",
+        "HTTP requests by route and status"
+    );
     metrics::describe_histogram!(
         "shapeseek_http_request_duration_seconds",
         metrics::Unit::Seconds,
@@ -48,10 +48,16 @@ fn describe() {
         metrics::Unit::Seconds,
         "time per ingest stage"
     );
-    metrics::describe_gauge!("shapeseek_queue_depth", "analysis jobs waiting for a worker");
+    metrics::describe_gauge!(
+        "shapeseek_queue_depth",
+        "analysis jobs waiting for a worker"
+    );
     metrics::describe_gauge!("shapeseek_jobs_running", "analysis jobs running");
     metrics::describe_gauge!("shapeseek_index_shapes", "shapes in the index");
-    metrics::describe_gauge!("shapeseek_index_bytes", "index size on disk (sled estimate)");
+    metrics::describe_gauge!(
+        "shapeseek_index_bytes",
+        "index size on disk (sled estimate)"
+    );
     metrics::describe_gauge!("shapeseek_calibration_epoch", "current calibration epoch");
 }
 

@@ -82,7 +82,10 @@ impl ApiError {
         match code {
             "limit.bytes" | "limit.vertices" | "limit.faces" => StatusCode::PAYLOAD_TOO_LARGE,
             "mesh.format" => StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "mesh.parse" | "mesh.external_reference" | "mesh.empty" | "mesh.non_finite"
+            "mesh.parse"
+            | "mesh.external_reference"
+            | "mesh.empty"
+            | "mesh.non_finite"
             | "spectrum.numerical" => StatusCode::UNPROCESSABLE_ENTITY,
             "request.invalid" => StatusCode::BAD_REQUEST,
             _ => StatusCode::INTERNAL_SERVER_ERROR,
@@ -116,10 +119,8 @@ impl IntoResponse for ApiError {
         };
         let bytes = serde_json::to_vec(&body).unwrap_or_else(|_| b"{}".to_vec());
         let mut resp = (self.status, bytes).into_response();
-        resp.headers_mut().insert(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static(PROBLEM_JSON),
-        );
+        resp.headers_mut()
+            .insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
         if let Some(s) = self.retry_after {
             if let Ok(v) = HeaderValue::from_str(&s.to_string()) {
                 resp.headers_mut().insert(header::RETRY_AFTER, v);

@@ -16,7 +16,9 @@ use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use tower_http::request_id::{MakeRequestId, PropagateRequestIdLayer, RequestId, SetRequestIdLayer};
+use tower_http::request_id::{
+    MakeRequestId, PropagateRequestIdLayer, RequestId, SetRequestIdLayer,
+};
 use tower_http::trace::TraceLayer;
 
 /// Builds the router over a loaded [`App`].
@@ -24,7 +26,10 @@ pub fn router<E: Engine>(app: Arc<App<E>>) -> Router {
     let timeout = Duration::from_secs_f64(app.cfg.request_timeout_secs);
     let v1 = Router::new()
         .route("/v1/shapes", post(h::ingest::<E>).get(h::list::<E>))
-        .route("/v1/shapes/{id}", get(h::get_shape::<E>).delete(h::delete_shape::<E>))
+        .route(
+            "/v1/shapes/{id}",
+            get(h::get_shape::<E>).delete(h::delete_shape::<E>),
+        )
         .route("/v1/shapes/{id}/mesh", get(h::get_mesh::<E>))
         .route("/v1/shapes/{id}/signature", get(h::get_signature::<E>))
         .route("/v1/search", post(h::search::<E>))
@@ -86,7 +91,10 @@ async fn timeout_mw(State(t): State<Duration>, req: Request, next: Next) -> Resp
         Err(_) => ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,
             "request.timeout",
-            format!("the request took longer than {:.1} s and was abandoned", t.as_secs_f64()),
+            format!(
+                "the request took longer than {:.1} s and was abandoned",
+                t.as_secs_f64()
+            ),
         )
         .into_response(),
     }
@@ -231,4 +239,3 @@ pub async fn start_with<E: Engine>(cfg: ServerConfig, engine: E) -> Result<Runni
         grace,
     })
 }
-

@@ -222,7 +222,7 @@ impl<E: Engine> App<E> {
         let mut shapes = Vec::new();
         let mut recomputed = 0usize;
         for (mut rec, bytes) in store.all()? {
-            let sig = match engine.from_bytes(&bytes) {
+            let sig = match engine.decode_signature(&bytes) {
                 Ok(s) if engine.signature_spec_key(&s) == spec_key => s,
                 stale => {
                     // Derivable data: recompute from the stored original.
@@ -238,7 +238,7 @@ impl<E: Engine> App<E> {
                     let analysis = analyze(&mesh, &engine.analyze_options())?;
                     let sig = engine.compute(&analysis)?;
                     rec.spec_key = spec_key.clone();
-                    store.replace_signature(&rec, &engine.to_bytes(&sig))?;
+                    store.replace_signature(&rec, &engine.encode_signature(&sig))?;
                     recomputed += 1;
                     sig
                 }
@@ -391,7 +391,7 @@ impl<E: Engine> App<E> {
             prepare: analysis.report.clone(),
             spec_key: self.engine.signature_spec_key(&sig),
         };
-        let sig_bytes = self.engine.to_bytes(&sig);
+        let sig_bytes = self.engine.encode_signature(&sig);
         let outcome = self
             .store
             .insert(&record, &digest, &sig_bytes, &up.bytes)
@@ -644,9 +644,8 @@ impl<E: Engine> App<E> {
                 };
                 let exclude = if opts.include_self { None } else { self_at };
                 let tags = opts.tags.clone();
-                let keep = move |e: &crate::index::scan::Entry<E>| {
-                    tags.iter().all(|t| e.tags.contains(t))
-                };
+                let keep =
+                    move |e: &crate::index::scan::Entry<E>| tags.iter().all(|t| e.tags.contains(t));
                 let candidates = scan
                     .entries()
                     .iter()
