@@ -223,7 +223,7 @@ impl<E: Engine> App<E> {
         let mut recomputed = 0usize;
         for (mut rec, bytes) in store.all()? {
             let sig = match engine.decode_signature(&bytes) {
-                Ok(s) if engine.signature_spec_key(&s) == spec_key => s,
+                Ok(s) if rec.spec_key == spec_key && engine.signature_spec_key(&s) == spec_key => s,
                 stale => {
                     // Derivable data: recompute from the stored original.
                     if let Err(e) = &stale {
