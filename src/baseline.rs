@@ -5,11 +5,12 @@
 //! * **Geodesic**: exact shortest paths on the *edge graph* (Dijkstra, Euclidean edge lengths)
 //!   from the farthest-point sources of the shared quadrature (weights: their Voronoi-cell
 //!   areas) to every vertex (weights `a_y`). Edge-graph paths are polylines along mesh edges, so
-//!   they *overestimate* the surface geodesic distance: measured in the tests on a unit sphere
-//!   (icosphere, 2 562 vertices) the mean relative excess over the great-circle distance is
-//!   reported by `geodesic_bias_on_sphere` (a few percent, about 8 % on regular planar grids in
-//!   the worst directions). The bias is systematic (similar on every shape of similar
-//!   triangulation quality), so it moves every histogram alike; it is not corrected.
+//!   they *overestimate* the surface geodesic distance. Measured in the test
+//!   `baselines_on_the_sphere` (unit-area icosphere, 2 562 vertices, against the great-circle
+//!   distance): a mean relative excess of 6.7 % over the 10–90 % quantiles; the corpus window
+//!   on bench/mini is 3 % above REFERENCE.md's (which used the heat method). The bias is
+//!   systematic (similar on every shape of similar triangulation quality), so it moves every
+//!   histogram alike; it is not corrected.
 //! * **D2** (Osada et al. 2002): `samples` points uniform on the surface (triangle by area, then
 //!   uniform barycentric), all unordered pairs, Euclidean distances, equal weights. The random
 //!   generator is seeded with a hash of the mesh content, so a shape always gets the same

@@ -775,6 +775,20 @@ fn gltf_strip_fan_and_index_types() {
         quad().iter().map(|p| p.map(f64::from)).collect::<Vec<_>>()
     );
     assert_eq!(m.faces, vec![[3, 2, 1], [1, 2, 0]]);
+    // POSITION bounds (min/max) are not needed: missing ones are tolerated.
+    let mut v: serde_json::Value = serde_json::from_slice(&gltf_doc(
+        &quad(),
+        None,
+        None,
+        4,
+        nodes.clone(),
+        scene.clone(),
+    ))
+    .unwrap();
+    v["accessors"][0].as_object_mut().unwrap().remove("min");
+    v["accessors"][0]["max"] = serde_json::json!("nonsense");
+    let m = read(&serde_json::to_vec(&v).unwrap(), None).unwrap();
+    assert_eq!(m.vertices.len(), 4);
     // Points and lines are skipped.
     for mode in [0, 1, 2, 3] {
         let m = read(

@@ -256,8 +256,12 @@ fn read_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>], bin: Option<&[u8]>) -
 /// gltf-json 1.4.1's validator indexes `root.accessors[...]` with the `POSITION` attribute before
 /// checking that index (a panic on hostile input, found by the fuzz test), so attribute indices
 /// are checked here first; the validator itself then checks every other reference.
+///
+/// The bounds (`min`/`max`) that the specification requires on `POSITION` accessors are unused
+/// here and often missing in exported files: missing or malformed ones are filled with zeros
+/// instead of failing validation.
 fn parse_document(json: &[u8]) -> Result<gltf::Document> {
-    let root: gltf::json::Root = gltf::json::deserialize::from_slice(json)
+    let mut root: gltf::json::Root = gltf::json::deserialize::from_slice(json)
         .map_err(|e| perr(format!("invalid glTF JSON: {e}")))?;
     let n_acc = root.accessors.len();
     for (m, mesh) in root.meshes.iter().enumerate() {
@@ -279,6 +283,30 @@ fn parse_document(json: &[u8]) -> Result<gltf::Document> {
                     "mesh {m} primitive {p}: accessor {} does not exist ({n_acc} accessors)",
                     i.value()
                 )));
+            }
+        }
+    }
+    let positions: Vec<usize> = root
+        .meshes
+        .iter()
+        .flat_map(|m| m.primitives.iter())
+        .filter_map(|p| {
+            p.attributes.get(&gltf::json::validation::Checked::Valid(
+                gltf::Semantic::Positions,
+            ))
+        })
+        .map(|i| i.value())
+        .collect();
+    for i in positions {
+        if let Some(acc) = root.accessors.get_mut(i) {
+            for bound in [&mut acc.min, &mut acc.max] {
+                let ok = bound
+                    .as_ref()
+                    .and_then(|v| v.as_array())
+                    .is_some_and(|a| a.len() == 3 && a.iter().all(|x| x.is_number()));
+                if !ok {
+                    *bound = Some(gltf::json::Value::from(vec![0.0f32; 3]));
+                }
             }
         }
     }

@@ -294,8 +294,7 @@ fn sniff(bytes: &[u8]) -> Option<Format> {
     {
         return Some(Format::Stl);
     }
-    if trimmed.first() == Some(&b'{') && contains(&bytes[..bytes.len().min(1 << 20)], b"\"asset\"")
-    {
+    if trimmed.first() == Some(&b'{') && contains(bytes, b"\"asset\"") {
         return Some(Format::Gltf);
     }
     if stl::binary_size_matches(bytes) {
