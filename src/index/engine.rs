@@ -52,4 +52,21 @@ pub trait Engine: Send + Sync + 'static {
     fn validate_query(&self, q: &Self::Query) -> Result<()>;
     /// Dissimilarity of `candidate` to `query` under `spec`: lower is more similar.
     fn score(&self, query: &Self::Prepared, candidate: &Self::Prepared, spec: &Self::Query) -> f64;
+    /// Every candidate as `(position, score)`, sorted by score (`f64::total_cmp`), ties by
+    /// position. The default scores in parallel with [`Engine::score`].
+    fn rank(
+        &self,
+        query: &Self::Prepared,
+        candidates: &[Self::Prepared],
+        spec: &Self::Query,
+    ) -> Vec<(usize, f64)> {
+        use rayon::prelude::*;
+        let mut out: Vec<(usize, f64)> = candidates
+            .par_iter()
+            .enumerate()
+            .map(|(i, c)| (i, self.score(query, c, spec)))
+            .collect();
+        out.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+        out
+    }
 }

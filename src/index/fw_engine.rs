@@ -106,4 +106,12 @@ impl Engine for FwEngine {
     fn score(&self, query: &Prepared, candidate: &Prepared, spec: &QuerySpec) -> f64 {
         ranking::score(query, candidate, spec)
     }
+    fn rank(
+        &self,
+        query: &Prepared,
+        candidates: &[Prepared],
+        spec: &QuerySpec,
+    ) -> Vec<(usize, f64)> {
+        ranking::rank(query, candidates, spec)
+    }
 }

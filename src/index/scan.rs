@@ -1,9 +1,11 @@
 //! The in-memory scan structure: every stored signature prepared under the current
-//! calibration, in one contiguous vector, ranked with rayon over chunks.
+//! calibration, as parallel arrays sorted by id (= ingest order), ranked by the engine's
+//! `rank` (the framework's `ranking::rank`: rayon over the contiguous prepared array, sorted by
+//! score, ties by position — the same call and tie rule as the evaluation harness).
 //!
 //! It is loaded from the store at start and kept in step with every insert and delete by the
-//! server (under a write lock held only for the O(1) update). Recalibration builds the new
-//! prepared vector outside the lock and swaps it in, so searches never wait for it.
+//! server (under a write lock held only for the update). Recalibration builds the new prepared
+//! array outside the lock and swaps it in, so searches never wait for it.
 
 use super::engine::Engine;
 use rayon::prelude::*;
@@ -13,26 +15,15 @@ use std::sync::Arc;
 /// A shape to index: (id, name, tags, signature).
 pub type ShapeRow<E> = (String, String, Vec<String>, Arc<<E as Engine>::Signature>);
 
-/// One indexed shape.
-pub struct Entry<E: Engine> {
-    /// Shape id.
-    pub id: String,
-    /// Display name.
-    pub name: String,
-    /// Tags (filters).
-    pub tags: Vec<String>,
-    /// The stored signature (kept for recalibration).
-    pub signature: Arc<E::Signature>,
-    /// The signature prepared under [`ScanIndex::calibration`].
-    pub prepared: E::Prepared,
-}
-
-/// Shapes in scan order with their prepared signatures.
+/// Shapes in id order with their prepared signatures (struct of arrays).
 pub struct ScanIndex<E: Engine> {
     calibration: Option<Arc<E::Calibration>>,
     calibrated_on: usize,
-    entries: Vec<Entry<E>>,
-    pos: HashMap<String, usize>,
+    ids: Vec<String>,
+    names: Vec<String>,
+    tags: Vec<Vec<String>>,
+    signatures: Vec<Arc<E::Signature>>,
+    prepared: Vec<E::Prepared>,
 }
 
 impl<E: Engine> Default for ScanIndex<E> {
@@ -40,34 +31,27 @@ impl<E: Engine> Default for ScanIndex<E> {
         Self {
             calibration: None,
             calibrated_on: 0,
-            entries: Vec::new(),
-            pos: HashMap::new(),
+            ids: Vec::new(),
+            names: Vec::new(),
+            tags: Vec::new(),
+            signatures: Vec::new(),
+            prepared: Vec::new(),
         }
     }
 }
 
-/// A candidate found by a scan: position in the scan vector and score.
+/// A candidate found by a scan: position in the scan arrays and score.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Scored {
-    /// Index into [`ScanIndex::entries`].
+    /// Position (id order).
     pub at: usize,
     /// Dissimilarity (lower = more similar).
     pub score: f64,
 }
 
-/// Orders by score (NaN last), then by scan position (ingest order) for determinism.
+/// The ranking order of the framework: score (`f64::total_cmp`), ties by position.
 pub fn by_score(a: &Scored, b: &Scored) -> std::cmp::Ordering {
-    let ka = if a.score.is_nan() {
-        f64::INFINITY
-    } else {
-        a.score
-    };
-    let kb = if b.score.is_nan() {
-        f64::INFINITY
-    } else {
-        b.score
-    };
-    ka.total_cmp(&kb).then(a.at.cmp(&b.at))
+    a.score.total_cmp(&b.score).then(a.at.cmp(&b.at))
 }
 
 impl<E: Engine> ScanIndex<E> {
@@ -83,22 +67,42 @@ impl<E: Engine> ScanIndex<E> {
 
     /// Number of shapes.
     pub fn len(&self) -> usize {
-        self.entries.len()
+        self.ids.len()
     }
 
     /// True when empty.
     pub fn is_empty(&self) -> bool {
-        self.entries.is_empty()
-    }
-
-    /// The entries in scan order.
-    pub fn entries(&self) -> &[Entry<E>] {
-        &self.entries
+        self.ids.is_empty()
     }
 
     /// Position of an id.
     pub fn position(&self, id: &str) -> Option<usize> {
-        self.pos.get(id).copied()
+        self.ids.binary_search_by(|x| x.as_str().cmp(id)).ok()
+    }
+
+    /// Id at a position.
+    pub fn id(&self, at: usize) -> &str {
+        &self.ids[at]
+    }
+
+    /// Name at a position.
+    pub fn name(&self, at: usize) -> &str {
+        &self.names[at]
+    }
+
+    /// Tags at a position.
+    pub fn tags(&self, at: usize) -> &[String] {
+        &self.tags[at]
+    }
+
+    /// Signature at a position.
+    pub fn signature(&self, at: usize) -> &Arc<E::Signature> {
+        &self.signatures[at]
+    }
+
+    /// The prepared signatures, contiguous, in id order.
+    pub fn prepared(&self) -> &[E::Prepared] {
+        &self.prepared
     }
 
     /// Builds the index from stored shapes under `cal`.
@@ -106,8 +110,9 @@ impl<E: Engine> ScanIndex<E> {
         engine: &E,
         cal: Arc<E::Calibration>,
         calibrated_on: usize,
-        shapes: Vec<ShapeRow<E>>,
+        mut shapes: Vec<ShapeRow<E>>,
     ) -> Self {
+        shapes.sort_by(|a, b| a.0.cmp(&b.0));
         let prepared: Vec<E::Prepared> = shapes
             .par_iter()
             .map(|(_, _, _, s)| engine.prepare(s, &cal))
@@ -115,18 +120,14 @@ impl<E: Engine> ScanIndex<E> {
         let mut idx = Self {
             calibration: Some(cal),
             calibrated_on,
-            entries: Vec::with_capacity(shapes.len()),
-            pos: HashMap::with_capacity(shapes.len()),
+            prepared,
+            ..Self::default()
         };
-        for ((id, name, tags, signature), prepared) in shapes.into_iter().zip(prepared) {
-            idx.pos.insert(id.clone(), idx.entries.len());
-            idx.entries.push(Entry {
-                id,
-                name,
-                tags,
-                signature,
-                prepared,
-            });
+        for (id, name, tags, signature) in shapes {
+            idx.ids.push(id);
+            idx.names.push(name);
+            idx.tags.push(tags);
+            idx.signatures.push(signature);
         }
         idx
     }
@@ -152,55 +153,57 @@ impl<E: Engine> ScanIndex<E> {
             }
         };
         let prepared = engine.prepare(&signature, &cal);
-        let entry = Entry {
-            id: id.clone(),
-            name,
-            tags,
-            signature,
-            prepared,
-        };
-        match self.pos.get(&id) {
-            Some(&at) => self.entries[at] = entry,
-            None => {
-                self.pos.insert(id, self.entries.len());
-                self.entries.push(entry);
+        match self.ids.binary_search(&id) {
+            Ok(at) => {
+                self.names[at] = name;
+                self.tags[at] = tags;
+                self.signatures[at] = signature;
+                self.prepared[at] = prepared;
+            }
+            Err(at) => {
+                self.ids.insert(at, id);
+                self.names.insert(at, name);
+                self.tags.insert(at, tags);
+                self.signatures.insert(at, signature);
+                self.prepared.insert(at, prepared);
             }
         }
     }
 
-    /// Removes a shape (swap-remove). False when absent.
+    /// Removes a shape. False when absent.
     pub fn remove(&mut self, id: &str) -> bool {
-        let Some(at) = self.pos.remove(id) else {
+        let Some(at) = self.position(id) else {
             return false;
         };
-        self.entries.swap_remove(at);
-        if at < self.entries.len() {
-            let moved = self.entries[at].id.clone();
-            self.pos.insert(moved, at);
-        }
+        self.ids.remove(at);
+        self.names.remove(at);
+        self.tags.remove(at);
+        self.signatures.remove(at);
+        self.prepared.remove(at);
         true
     }
 
     /// True when the size moved by more than `fraction` since the last calibration.
     pub fn needs_recalibration(&self, fraction: f64) -> bool {
-        let n = self.entries.len() as f64;
-        let c = self.calibrated_on as f64;
-        if self.entries.is_empty() {
+        if self.ids.is_empty() {
             return false;
         }
+        let n = self.ids.len() as f64;
+        let c = self.calibrated_on as f64;
         self.calibration.is_none() || (n - c).abs() > fraction * c.max(1.0)
     }
 
     /// A snapshot of (id, signature) for recalibration outside the lock.
     pub fn snapshot(&self) -> Vec<(String, Arc<E::Signature>)> {
-        self.entries
+        self.ids
             .iter()
-            .map(|e| (e.id.clone(), e.signature.clone()))
+            .cloned()
+            .zip(self.signatures.iter().cloned())
             .collect()
     }
 
-    /// Installs a calibration and prepared signatures computed on `prepared` (a snapshot);
-    /// entries added since the snapshot are prepared here, entries deleted since are ignored.
+    /// Installs a calibration and prepared signatures computed on a snapshot; shapes added
+    /// since the snapshot are prepared here, shapes deleted since are ignored.
     pub fn install_calibration(
         &mut self,
         engine: &E,
@@ -208,56 +211,35 @@ impl<E: Engine> ScanIndex<E> {
         calibrated_on: usize,
         mut prepared: HashMap<String, E::Prepared>,
     ) {
-        for e in self.entries.iter_mut() {
-            e.prepared = match prepared.remove(&e.id) {
+        for (at, id) in self.ids.iter().enumerate() {
+            self.prepared[at] = match prepared.remove(id) {
                 Some(p) => p,
-                None => engine.prepare(&e.signature, &cal),
+                None => engine.prepare(&self.signatures[at], &cal),
             };
         }
         self.calibration = Some(cal);
         self.calibrated_on = calibrated_on;
     }
 
-    /// The `k` best entries for `query` under `spec`, among those passing `keep(position, entry)`, best first.
-    /// Ranks all candidates with rayon over chunks, each chunk keeping its own top `k`.
+    /// The `k` best shapes for `query` under `spec` among positions passing `keep`, best
+    /// first: the engine's full ranking, filtered, truncated.
     pub fn rank(
         &self,
         engine: &E,
         query: &E::Prepared,
         spec: &E::Query,
         k: usize,
-        keep: &(dyn Fn(usize, &Entry<E>) -> bool + Sync),
+        keep: &(dyn Fn(usize) -> bool + Sync),
     ) -> Vec<Scored> {
-        if k == 0 || self.entries.is_empty() {
+        if k == 0 || self.ids.is_empty() {
             return Vec::new();
         }
-        const CHUNK: usize = 256;
-        let mut all: Vec<Scored> = self
-            .entries
-            .par_chunks(CHUNK)
-            .enumerate()
-            .map(|(c, chunk)| {
-                let mut local: Vec<Scored> = chunk
-                    .iter()
-                    .enumerate()
-                    .filter(|(i, e)| keep(c * CHUNK + i, e))
-                    .map(|(i, e)| Scored {
-                        at: c * CHUNK + i,
-                        score: engine.score(query, &e.prepared, spec),
-                    })
-                    .collect();
-                local.sort_by(by_score);
-                local.truncate(k);
-                local
-            })
-            .reduce(Vec::new, |mut a, b| {
-                a.extend(b);
-                a.sort_by(by_score);
-                a.truncate(k);
-                a
-            });
-        all.sort_by(by_score);
-        all.truncate(k);
-        all
+        engine
+            .rank(query, &self.prepared, spec)
+            .into_iter()
+            .filter(|&(at, _)| keep(at))
+            .take(k)
+            .map(|(at, score)| Scored { at, score })
+            .collect()
     }
 }

@@ -631,35 +631,25 @@ impl<E: Engine> App<E> {
                     return Ok((Vec::new(), 0, 0, 0.0, 0.0));
                 };
                 let epoch = app.engine.calibration_epoch(&cal);
-                let (query, self_at) = match (&query_sig, &opts.id) {
-                    (Some(s), _) => (app.engine.prepare(s, &cal), None),
+                let uploaded = query_sig.as_ref().map(|s| app.engine.prepare(s, &cal));
+                let (query, self_at) = match (&uploaded, &opts.id) {
+                    (Some(p), _) => (p, None),
                     (None, Some(id)) => {
                         let at = scan.position(id).ok_or_else(|| ApiError::not_found(id))?;
-                        (
-                            app.engine.prepare(&scan.entries()[at].signature, &cal),
-                            Some(at),
-                        )
+                        (&scan.prepared()[at], Some(at))
                     }
                     (None, None) => return Err(ApiError::invalid("no query given")),
                 };
                 let exclude = if opts.include_self { None } else { self_at };
-                let tags = opts.tags.clone();
-                let keep =
-                    move |e: &crate::index::scan::Entry<E>| tags.iter().all(|t| e.tags.contains(t));
-                let candidates = scan
-                    .entries()
-                    .iter()
-                    .enumerate()
-                    .filter(|(i, e)| Some(*i) != exclude && keep(e))
-                    .count();
+                let tags = &opts.tags;
+                let keep = |at: usize| {
+                    Some(at) != exclude && tags.iter().all(|t| scan.tags(at).contains(t))
+                };
+                let candidates = (0..scan.len()).filter(|&at| keep(at)).count();
                 let first_k = stages.iter().map(|(n, _)| *n).max().unwrap_or(0).max(top_k);
                 let t1 = Instant::now();
-                let entries = scan.entries();
-                let keep_all = move |at: usize, e: &crate::index::scan::Entry<E>| {
-                    Some(at) != exclude && keep(e)
-                };
                 let mut list: Vec<(Scored, Vec<f64>)> = scan
-                    .rank(&app.engine, &query, &spec, first_k, &keep_all)
+                    .rank(&app.engine, query, &spec, first_k, &keep)
                     .into_iter()
                     .map(|s| (s, vec![s.score]))
                     .collect();
@@ -668,7 +658,7 @@ impl<E: Engine> App<E> {
                 for (n, q) in &stages {
                     list.truncate(*n);
                     for (s, scores) in list.iter_mut() {
-                        s.score = app.engine.score(&query, &entries[s.at].prepared, q);
+                        s.score = app.engine.score(query, &scan.prepared()[s.at], q);
                         scores.push(s.score);
                     }
                     list.sort_by(|a, b| by_score(&a.0, &b.0));
@@ -679,8 +669,8 @@ impl<E: Engine> App<E> {
                     .into_iter()
                     .enumerate()
                     .map(|(r, (s, stage_scores))| Hit {
-                        id: entries[s.at].id.clone(),
-                        name: entries[s.at].name.clone(),
+                        id: scan.id(s.at).to_string(),
+                        name: scan.name(s.at).to_string(),
                         score: s.score,
                         rank: r + 1,
                         calibration_epoch: epoch,
