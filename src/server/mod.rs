@@ -1,9 +1,23 @@
 //! `shapeseek serve`: the REST service on the embedded sled index.
 //!
-//! Layers (outside in): request id → trace → metrics → problem+json catch-all → body limit →
-//! per-request timeout (on `/v1`) → handlers. CPU work (reading, analysis, signatures) runs on
-//! the bounded [`limits::WorkPool`]; ranking runs on rayon from a blocking thread. See
-//! `api/openapi.yaml` for the contract.
+//! Endpoints (contract: `api/openapi.yaml`, served at `/openapi.yaml`):
+//!
+//! | method | path | what |
+//! | --- | --- | --- |
+//! | POST | `/v1/shapes` | ingest (raw body or multipart `file` + `metadata`); 201, or 200 for known bytes |
+//! | GET | `/v1/shapes` | list, `?limit&cursor&tag` |
+//! | GET, DELETE | `/v1/shapes/{id}` | record / delete |
+//! | GET | `/v1/shapes/{id}/mesh` | original bytes with their content type |
+//! | GET | `/v1/shapes/{id}/signature` | the signature's distributions as JSON |
+//! | POST | `/v1/search` | by id (JSON), by upload (raw or multipart `file` + `query`), rerank stages |
+//! | GET | `/v1/index` | size, calibration epoch, specs, queue |
+//! | GET | `/healthz`, `/readyz`, `/metrics`, `/openapi.yaml` | operations |
+//!
+//! Layers (outside in): request id → trace → metrics → panic → problem+json catch-all → body
+//! limit → per-request timeout (on `/v1`) → handlers. CPU work (reading, analysis, signatures)
+//! runs on the bounded [`limits::WorkPool`] (503 `server.busy` + `Retry-After` when full);
+//! ranking runs on rayon from a blocking thread. Configuration: [`ServerConfig`] (defaults <
+//! TOML file < `SHAPESEEK_*` environment < flags).
 
 pub mod config;
 pub mod handlers;

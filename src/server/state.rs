@@ -508,7 +508,16 @@ impl<E: Engine> App<E> {
             self.update_gauges();
         }
         self.recalibrating.store(false, Ordering::Release);
-        // A change that raced with the flag reset is caught by the next write.
+        // A write that came between the last check and the reset saw the flag set and left the
+        // work to this loop: check once more.
+        let again = self
+            .scan
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .needs_recalibration(self.cfg.recalibrate_fraction);
+        if again && !self.recalibrating.swap(true, Ordering::AcqRel) {
+            self.recalibrate_loop();
+        }
     }
 
     /// The effective query spec: `overrides` (a JSON object) merged over `base`.
