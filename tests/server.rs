@@ -1266,3 +1266,54 @@ fn stale_signatures_are_recomputed_from_originals() {
     );
     s.stop();
 }
+
+/// The migrations runner copies the directory first, then applies the steps and stamps the
+/// version (exercised with a test step 0 → 1, since version 1 is the first real format).
+#[test]
+fn migrate_backs_up_then_upgrades() {
+    use shapeseek::index::migrate::{migrate_with, Step};
+    fn add_marker(db: &sled::Db) -> shapeseek::Result<()> {
+        db.open_tree("meta")
+            .and_then(|t| t.insert("migrated_by_test", &b"yes"[..]))
+            .map_err(|e| shapeseek::Error::Io(std::io::Error::other(e.to_string())))?;
+        Ok(())
+    }
+    fn version_of(dir: &Path) -> u32 {
+        let db = sled::open(dir.join("db")).unwrap();
+        shapeseek::index::store::read_schema_version(&db)
+            .unwrap()
+            .unwrap()
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("idx");
+    drop(shapeseek::index::Store::open(&data).unwrap());
+    shapeseek::index::migrate::stamp_version(&data, 0).unwrap();
+    let steps = [Step {
+        from: 0,
+        description: "test step",
+        apply: add_marker,
+    }];
+    let MigrateOutcome::Upgraded { from, to, backup } = migrate_with(&data, &steps, 1).unwrap()
+    else {
+        panic!("not upgraded")
+    };
+    assert_eq!((from, to), (0, 1));
+    assert_eq!(
+        version_of(&backup),
+        0,
+        "the backup is the untouched original"
+    );
+    assert_eq!(version_of(&data), 1);
+    let db = sled::open(data.join("db")).unwrap();
+    assert!(db
+        .open_tree("meta")
+        .unwrap()
+        .get("migrated_by_test")
+        .unwrap()
+        .is_some());
+    drop(db);
+    assert_eq!(
+        migrate_with(&data, &steps, 1).unwrap(),
+        MigrateOutcome::UpToDate(1)
+    );
+}

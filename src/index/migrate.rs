@@ -46,6 +46,12 @@ pub enum MigrateOutcome {
 /// nothing, when the version is newer than this build or has no upgrade path, or when the
 /// index is in use by a running server (sled's lock).
 pub fn migrate(dir: &Path) -> Result<MigrateOutcome> {
+    migrate_with(dir, STEPS, SCHEMA_VERSION)
+}
+
+/// [`migrate`] with an explicit step list and target version (the runner itself; tests use
+/// it with their own steps).
+pub fn migrate_with(dir: &Path, steps: &[Step], target: u32) -> Result<MigrateOutcome> {
     let db_path = dir.join("db");
     if !db_path.exists() {
         Store::open(dir)?;
@@ -62,12 +68,12 @@ pub fn migrate(dir: &Path) -> Result<MigrateOutcome> {
         Store::open(dir)?;
         return Ok(MigrateOutcome::Created(SCHEMA_VERSION));
     };
-    if from == SCHEMA_VERSION {
+    if from == target {
         return Ok(MigrateOutcome::UpToDate(from));
     }
-    if from > SCHEMA_VERSION {
+    if from > target {
         return Err(Error::InvalidArgument(format!(
-            "index at {} has schema version {from}, newer than this build's {SCHEMA_VERSION}: \
+            "index at {} has schema version {from}, newer than this build's {target}: \
              refusing to touch it (use a newer shapeseek)",
             dir.display()
         )));
@@ -75,13 +81,13 @@ pub fn migrate(dir: &Path) -> Result<MigrateOutcome> {
     // Check the whole path exists before touching anything.
     let mut v = from;
     let mut plan = Vec::new();
-    while v < SCHEMA_VERSION {
-        let step = STEPS.iter().find(|s| s.from == v).ok_or_else(|| {
+    while v < target {
+        let step = steps.iter().find(|s| s.from == v).ok_or_else(|| {
             Error::InvalidArgument(format!(
                 "index at {} has schema version {from}: no upgrade path from version {v} \
                  (known steps: {:?}); refusing",
                 dir.display(),
-                STEPS.iter().map(|s| s.from).collect::<Vec<_>>()
+                steps.iter().map(|s| s.from).collect::<Vec<_>>()
             ))
         })?;
         plan.push(step);
@@ -101,7 +107,7 @@ pub fn migrate(dir: &Path) -> Result<MigrateOutcome> {
     }
     Ok(MigrateOutcome::Upgraded {
         from,
-        to: SCHEMA_VERSION,
+        to: target,
         backup,
     })
 }
