@@ -18,8 +18,11 @@
 //!   block of the upper triangle. This equals eq. 6 with the A-weighted vertex quadrature
 //!   because `Φᵀ A Φ = I` (tested to 1e-8).
 //! * **L1 / L∞**: kernel rows `k(x, z) = Σ_i K(λ_i) φ_i(x) φ_i(z)` evaluated on `lp_samples`
-//!   (default 300) farthest-point nodes `z` with their Voronoi areas as quadrature weights:
-//!   `d(x,y) = Σ_z W_z |k(x,z) − k(y,z)|` resp. `max_z |…|` (O(m³); paper Table 2's H-L1, H-L∞).
+//!   (default 500) farthest-point nodes `z` with their Voronoi areas as quadrature weights:
+//!   `d(x,y) = Σ_z W_z |k(x,z) − k(y,z)|` resp. `max_z |…|`, the same nodes serving as pair
+//!   points (with the near field below). O(m³): paper Table 2's H-L1 and H-L∞ only. Measured
+//!   against 1 200 nodes on a 2 562-vertex shape (`lp_quadrature_error`, ignored): nL1 0.030–0.035
+//!   with 300 nodes, 0.016 with 500, 0.007–0.009 with 800.
 //!
 //! # Pair quadrature (eq. 10)
 //!
@@ -29,19 +32,26 @@
 //! farthest from the area centroid, so the choice is rigid-motion and permutation invariant on
 //! asymmetric shapes), each carrying the area of its **Voronoi cell** (every vertex is assigned
 //! to its nearest sample in edge-graph distance, weights `a_i`): every ordered sample pair
-//! `(i, j)` has weight `W_i W_j`, so the total mass is still `area²`.
+//! `(i, j)` has weight `W_i W_j`, so the total mass is still `area²`. **Near field**: pairs of
+//! the same or of adjacent cells (cells joined by a mesh edge) are evaluated one-sided exactly,
+//! `W_i Σ_{y ∈ cell j} a_y δ(d(s_i, y))`, so that small distances are not quantised to the
+//! sample spacing (≈ 7 n extra distances; the mass is unchanged).
 //!
-//! Measured error (test `quadrature_and_sketch_errors_against_exact_all_pairs`, bumpy torus,
-//! 3 000 vertices, k = 100, six heat-L2 scales, nL1 of the 256-bin Parzen histograms against
-//! binning the exact all-pairs `a_x a_y` distances directly): **≤ 0.008** on the shape's own
-//! 95th-percentile window (0.0056–0.0079 per scale), ≤ 0.008 on twice that window, ≤ 0.023 on
-//! half of it (worst at t = 0.016, whose distribution has a sharp peak). At **10 000 vertices**
-//! (bumpy torus 125 × 80, exact all pairs streamed, test `quadrature_error_10k`, ignored:
-//! one minute): **≤ 0.0082** on the own window (0.0064–0.0082 per scale), ≤ 0.0055 on twice it,
-//! 0.009–0.016 on half of it except 0.0285 at t = 0.016. For comparison at 3 000 vertices:
-//! 500 samples 0.014–0.018, 1 500 samples 0.003–0.004 (at 2.25× the time); representing a cell
-//! by its mean eigenmap row (`cell_means`) was not better (0.005–0.009). i.i.d. sampling of
-//! 1 000 points was measured by REFERENCE.md at ≈ 0.08 between two draws.
+//! Measured error (nL1 of the 256-bin Parzen histograms derived from the signature against
+//! binning the exact all-pairs `a_x a_y` distances directly, six heat-L2 scales, k = 100):
+//!
+//! | shape | own 95 % window | twice it | half of it |
+//! |---|---|---|---|
+//! | bumpy torus, 3 000 vertices (test `quadrature_and_sketch_errors_against_exact_all_pairs`) | ≤ 0.0069 | ≤ 0.0073 | ≤ 0.019 |
+//! | bumpy torus, 10 000 vertices (test `quadrature_error_10k`, ignored: 1 min) | ≤ 0.0067 | ≤ 0.0042 | ≤ 0.018 |
+//!
+//! The worst case is always t = 0.016 on the half window (its distribution has a sharp peak and
+//! the half window resolves small distances finely); the other scales stay ≤ 0.0124 there. A
+//! corpus window differs from a shape's own, hence the half / twice columns. Sweep at 3 000
+//! vertices (own / half-or-twice window, `quadrature_sweep`): 500 samples 0.015 / 0.035; 1 000
+//! without near field 0.0079 / 0.0225; 1 000 with cell-mean rows 0.0090 / 0.026; 1 500 samples
+//! 0.0042 / 0.014 (at 1.5–2× the time). i.i.d. sampling of 1 000 points was measured by
+//! REFERENCE.md at ≈ 0.08 between two draws.
 //!
 //! # Stored representation
 //!
@@ -66,10 +76,12 @@
 //! # Complexity and time
 //!
 //! FPS: `O(m n)` for the farthest-vertex scans plus pruned Dijkstra runs (≈ 25 ms at n = 10⁴,
-//! m = 1 000). Per L2 channel: `O(m² k_eff)` GEMM + `m²/2` histogram updates. Channels run in
+//! m = 1 000). Per L2 channel: `O(m² k_eff)` GEMM + `m²/2` histogram updates + `O(n k_eff)`
+//! near field. Channels run in
 //! parallel (rayon), each over row blocks; per-block histograms are merged in block order, so
 //! results are bitwise deterministic whatever the thread count. Six-scale heat-L2 signature of a
-//! 10 000-vertex shape with k = 100: median **184 ms** on the shared 2-core machine at load ≈ 6
+//! 10 000-vertex shape with k = 100: median **213 ms** (5 runs, 205–217 ms) on the shared 2-core
+//! machine at load ≈ 5
 //! (`cargo test --release --lib signature::tests::timing_10k -- --ignored --nocapture`).
 
 use crate::mesh::{norm, sub, Mesh};
@@ -354,7 +366,15 @@ pub enum PairQuadrature {
         /// instead of the sample vertex's own row.
         #[serde(default)]
         cell_means: bool,
+        /// Evaluate same-cell and adjacent-cell pairs one-sided exactly (sample to every vertex
+        /// of the other cell) instead of sample to sample (ignored with `cell_means`).
+        #[serde(default = "yes")]
+        near_field: bool,
     },
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// What to compute for a shape: the channels and the discretisation.
@@ -364,7 +384,7 @@ pub struct SignatureSpec {
     pub channels: Vec<ChannelSpec>,
     /// Pair quadrature of the L2 spectral channels.
     pub quadrature: PairQuadrature,
-    /// Quadrature points (pairs and integration points) of L1 / L∞ channels.
+    /// Quadrature points (pairs and integration nodes) of L1 / L∞ channels (O(m³) per channel).
     pub lp_samples: usize,
     /// Geodesic sources (farthest-point samples with Voronoi weights; targets are all vertices).
     pub geodesic_sources: usize,
@@ -379,8 +399,9 @@ impl Default for SignatureSpec {
             quadrature: PairQuadrature::Farthest {
                 samples: 1000,
                 cell_means: false,
+                near_field: true,
             },
-            lp_samples: 300,
+            lp_samples: 500,
             geodesic_sources: 200,
             sketch_quantiles: 1024,
         }
@@ -533,13 +554,14 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
         PairQuadrature::AllVertices => 0,
         PairQuadrature::Farthest { samples, .. } => samples.min(n),
     };
-    let cell_means = matches!(
-        spec.quadrature,
+    let (cell_means, near_field) = match spec.quadrature {
         PairQuadrature::Farthest {
-            cell_means: true,
+            cell_means,
+            near_field,
             ..
-        }
-    );
+        } => (cell_means, near_field),
+        PairQuadrature::AllVertices => (false, false),
+    };
     let lp_samples = spec.lp_samples.min(n);
     let geo_sources = spec.geodesic_sources.min(n);
     let mut prefixes = Vec::new();
@@ -579,9 +601,35 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
 
     let phi = sp.eigenvectors.as_ref();
     let l2_rows = l2_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means));
-    let lp_rows = lp_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means));
-    let lp_nodes = lp_quad.as_ref().map(|q| q.point_rows(phi));
-    let q = spec.sketch_quantiles;
+    let near = match (&l2_quad, &graph) {
+        (Some(q), Some(g)) if near_field && !cell_means => match (&q.points, &q.owner) {
+            (Some(points), Some(owner)) => {
+                Some(NearField::new(g, owner, points.clone(), phi, &sp.mass))
+            }
+            _ => None,
+        },
+        _ => None,
+    };
+    let lp_near = match (&lp_quad, &graph) {
+        (Some(q), Some(g)) if near_field && !cell_means => match (&q.points, &q.owner) {
+            (Some(points), Some(owner)) => {
+                Some(NearField::new(g, owner, points.clone(), phi, &sp.mass))
+            }
+            _ => None,
+        },
+        _ => None,
+    };
+    let ctx = SpectralContext {
+        l2_rows,
+        near,
+        lp_near,
+        lp_rows: lp_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means)),
+        lp_nodes: lp_quad.as_ref().map(|q| q.point_rows(phi)),
+        l2_quad,
+        lp_quad,
+        q: spec.sketch_quantiles,
+    };
+    let q = ctx.q;
 
     let channels: Vec<Result<ChannelData>> = spec
         .channels
@@ -590,17 +638,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
             let values = match &c.kind {
                 ChannelKind::Spectral { kernel, norm } => {
                     let w = vec![transfer_weights(kernel, &sp.eigenvalues, zero_tol)];
-                    spectral_channel(
-                        &w,
-                        *norm,
-                        PairMode::Single,
-                        &l2_quad,
-                        &l2_rows,
-                        &lp_quad,
-                        &lp_rows,
-                        &lp_nodes,
-                        q,
-                    )
+                    spectral_channel(&w, *norm, PairMode::Single, &ctx)
                 }
                 ChannelKind::DistanceAggregate {
                     ts,
@@ -608,31 +646,11 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                     aggregation,
                 } => {
                     let w = heat_weights(ts, &sp.eigenvalues, zero_tol);
-                    spectral_channel(
-                        &w,
-                        *norm,
-                        PairMode::Aggregate(*aggregation),
-                        &l2_quad,
-                        &l2_rows,
-                        &lp_quad,
-                        &lp_rows,
-                        &lp_nodes,
-                        q,
-                    )
+                    spectral_channel(&w, *norm, PairMode::Aggregate(*aggregation), &ctx)
                 }
                 ChannelKind::DistributionSum { ts, norm } => {
                     let w = heat_weights(ts, &sp.eigenvalues, zero_tol);
-                    spectral_channel(
-                        &w,
-                        *norm,
-                        PairMode::Mixture,
-                        &l2_quad,
-                        &l2_rows,
-                        &lp_quad,
-                        &lp_rows,
-                        &lp_nodes,
-                        q,
-                    )
+                    spectral_channel(&w, *norm, PairMode::Mixture, &ctx)
                 }
                 ChannelKind::Geodesic { radius } => {
                     ChannelValues::Distribution(crate::baseline::geodesic_sketch(
@@ -667,7 +685,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
         channels,
         vertices: n,
         area,
-        quadrature_points: l2_quad.as_ref().map_or(0, |q| q.len()),
+        quadrature_points: ctx.l2_quad.as_ref().map_or(0, |q| q.len()),
     })
 }
 
@@ -760,37 +778,50 @@ enum PairMode {
     Mixture,
 }
 
-#[allow(clippy::too_many_arguments)]
+/// Everything the spectral channels share: quadratures, eigenmap rows, near field.
+struct SpectralContext<'a> {
+    l2_quad: Option<Quadrature>,
+    l2_rows: Option<Mat<f64>>,
+    near: Option<NearField<'a>>,
+    lp_near: Option<NearField<'a>>,
+    lp_quad: Option<Quadrature>,
+    lp_rows: Option<Mat<f64>>,
+    lp_nodes: Option<Mat<f64>>,
+    q: usize,
+}
+
 fn spectral_channel(
     weights: &[Vec<f64>],
     norm: Norm,
     mode: PairMode,
-    l2_quad: &Option<Quadrature>,
-    l2_rows: &Option<Mat<f64>>,
-    lp_quad: &Option<Quadrature>,
-    lp_rows: &Option<Mat<f64>>,
-    lp_nodes: &Option<Mat<f64>>,
-    q: usize,
+    ctx: &SpectralContext<'_>,
 ) -> ChannelValues {
     let fine = match norm {
         Norm::L2 => {
-            let quad = l2_quad.as_ref().expect("L2 quadrature");
-            let rows = l2_rows.as_ref().expect("L2 rows");
-            l2_pairs(rows.as_ref(), &quad.weights, weights, mode)
+            let quad = ctx.l2_quad.as_ref().expect("L2 quadrature");
+            let rows = ctx.l2_rows.as_ref().expect("L2 rows");
+            l2_pairs(
+                rows.as_ref(),
+                &quad.weights,
+                weights,
+                mode,
+                ctx.near.as_ref(),
+            )
         }
         Norm::L1 | Norm::LInf => {
-            let quad = lp_quad.as_ref().expect("Lp quadrature");
+            let quad = ctx.lp_quad.as_ref().expect("Lp quadrature");
             lp_pairs(
-                lp_rows.as_ref().expect("Lp rows").as_ref(),
-                lp_nodes.as_ref().expect("Lp nodes").as_ref(),
+                ctx.lp_rows.as_ref().expect("Lp rows").as_ref(),
+                ctx.lp_nodes.as_ref().expect("Lp nodes").as_ref(),
                 &quad.weights,
                 weights,
                 norm == Norm::LInf,
                 mode,
+                ctx.lp_near.as_ref(),
             )
         }
     };
-    ChannelValues::Distribution(fine.sketch(q))
+    ChannelValues::Distribution(fine.sketch(ctx.q))
 }
 
 /// Columns `i` with `w_i² ≥ 1e-16 · max w²` (the rest change d² by less than 1e-16 relative),
@@ -875,13 +906,82 @@ fn diag_weight(mode: PairMode, scales: usize) -> f64 {
     }
 }
 
+/// Near field of a farthest-point quadrature: pairs of the same or adjacent Voronoi cells are
+/// evaluated one-sided exactly, `W_i Σ_{y ∈ cell j} a_y δ(d(s_i, y))` instead of
+/// `W_i W_j δ(d(s_i, s_j))`, so that small distances are not quantised to the sample spacing.
+pub(crate) struct NearField<'a> {
+    /// Per sample: adjacent samples (cells sharing a mesh edge) with a larger index, sorted.
+    adj: Vec<Vec<u32>>,
+    /// Per sample: member vertices of its cell.
+    members: Vec<Vec<u32>>,
+    /// Sample vertices.
+    samples: Vec<u32>,
+    /// Eigenvectors at every vertex.
+    phi: MatRef<'a, f64>,
+    /// Vertex areas.
+    mass: &'a [f64],
+}
+
+impl<'a> NearField<'a> {
+    fn new(
+        graph: &EdgeGraph,
+        owner: &[u32],
+        samples: Vec<u32>,
+        phi: MatRef<'a, f64>,
+        mass: &'a [f64],
+    ) -> Self {
+        let m = samples.len();
+        let mut adj = vec![Vec::new(); m];
+        let mut members = vec![Vec::new(); m];
+        for (v, &o) in owner.iter().enumerate() {
+            if (o as usize) >= m {
+                continue;
+            }
+            members[o as usize].push(v as u32);
+            for e in graph.offsets[v]..graph.offsets[v + 1] {
+                let p = owner[graph.nbrs[e] as usize];
+                if p > o && (p as usize) < m {
+                    adj[o as usize].push(p);
+                }
+            }
+        }
+        for a in &mut adj {
+            a.sort_unstable();
+            a.dedup();
+        }
+        Self {
+            adj,
+            members,
+            samples,
+            phi,
+            mass,
+        }
+    }
+}
+
+/// Row-major `n × kept` embedding `φ_i(v) w_i` of every vertex (the columns of
+/// [`weighted_embedding`]).
+fn vertex_embedding(phi: MatRef<'_, f64>, w: &[f64]) -> (Vec<f64>, usize) {
+    let e = weighted_embedding(phi, w);
+    let k = e.ncols();
+    let mut out = vec![0.0; e.nrows() * k];
+    for c in 0..k {
+        for (v, x) in e.col_as_slice(c).iter().enumerate() {
+            out[v * k + c] = *x;
+        }
+    }
+    (out, k)
+}
+
 /// Eq. 9 distances between all quadrature points, `d² = |ψ_i|² + |ψ_j|² − 2 ψ_i·ψ_j` (GEMM per
-/// row chunk), every ordered pair weighted `w_i w_j`.
+/// row chunk), every ordered pair weighted `w_i w_j`; with a [`NearField`], same-cell and
+/// adjacent-cell pairs are replaced by sample-to-vertex pairs.
 fn l2_pairs(
     rows: MatRef<'_, f64>,
     pw: &[f64],
     weights: &[Vec<f64>],
     mode: PairMode,
+    near: Option<&NearField<'_>>,
 ) -> FineHistogram {
     let m = rows.nrows();
     let psi: Vec<Mat<f64>> = weights
@@ -896,25 +996,37 @@ fn l2_pairs(
                 .collect()
         })
         .collect();
-    // d(x, y) ≤ |ψ_x| + |ψ_y| ≤ the two largest norms.
-    let per_scale: Vec<f64> = sq
-        .iter()
-        .map(|s| {
-            let (mut a, mut b) = (0.0f64, 0.0f64);
-            for &v in s {
-                if v > a {
-                    b = a;
-                    a = v;
-                } else if v > b {
-                    b = v;
-                }
+    let full: Vec<(Vec<f64>, usize)> = match near {
+        Some(nf) => weights
+            .iter()
+            .map(|w| vertex_embedding(nf.phi, w))
+            .collect(),
+        None => Vec::new(),
+    };
+    let top2 = |it: &mut dyn Iterator<Item = f64>| {
+        let (mut a, mut b) = (0.0f64, 0.0f64);
+        for v in it {
+            if v > a {
+                b = a;
+                a = v;
+            } else if v > b {
+                b = v;
             }
-            a.sqrt() + b.sqrt()
-        })
-        .collect();
+        }
+        a.sqrt() + b.sqrt()
+    };
+    // d(x, y) ≤ |ψ_x| + |ψ_y| ≤ the two largest norms (over every vertex with a near field).
+    let per_scale: Vec<f64> = if near.is_some() {
+        full.iter()
+            .map(|(e, k)| top2(&mut e.chunks(*k.max(&1)).map(|r| r.iter().map(|x| x * x).sum())))
+            .collect()
+    } else {
+        sq.iter().map(|s| top2(&mut s.iter().copied())).collect()
+    };
     let bound = mode_bound(mode, &per_scale);
     let ns = psi.len();
     let dw = diag_weight(mode, ns);
+    let empty: Vec<u32> = Vec::new();
     chunked_pairs(m, bound, |r0, r1, fine| {
         let r = r1 - r0;
         let gs: Vec<Mat<f64>> = psi
@@ -934,32 +1046,57 @@ fn l2_pairs(
                 g
             })
             .collect();
-        if let (PairMode::Single, [g]) = (mode, gs.as_slice()) {
-            let sq = &sq[0];
-            for ii in 0..r {
-                let i = r0 + ii;
-                fine.add_zero(pw[i] * pw[i]);
-                let (si, wi) = (sq[i], 2.0 * pw[i]);
-                let col = &g.col_as_slice(ii)[ii + 1..];
-                let js = &sq[i + 1..];
-                let ws = &pw[i + 1..];
-                for ((gij, sj), wj) in col.iter().zip(js).zip(ws) {
-                    fine.add((si + sj - 2.0 * gij).max(0.0).sqrt(), wi * wj);
-                }
-            }
-            return;
-        }
         let mut d = vec![0.0; ns];
         for ii in 0..r {
             let i = r0 + ii;
-            fine.add_zero(pw[i] * pw[i] * dw);
-            let cols: Vec<&[f64]> = gs.iter().map(|g| g.col_as_slice(ii)).collect();
-            for jj in (ii + 1)..(m - r0) {
-                let j = r0 + jj;
-                for ((ds, sqs), col) in d.iter_mut().zip(&sq).zip(&cols) {
-                    *ds = (sqs[i] + sqs[j] - 2.0 * col[jj]).max(0.0).sqrt();
+            let skip: &[u32] = near.map_or(&empty, |nf| &nf.adj[i]);
+            // Far field: j > i not adjacent to i, in segments between adjacent indices.
+            let mut lo = i + 1;
+            for stop in skip.iter().map(|&a| a as usize).chain(std::iter::once(m)) {
+                if let (PairMode::Single, [g]) = (mode, gs.as_slice()) {
+                    let sq = &sq[0];
+                    let (si, wi) = (sq[i], 2.0 * pw[i]);
+                    let col = &g.col_as_slice(ii)[lo - r0..stop - r0];
+                    for ((gij, sj), wj) in col.iter().zip(&sq[lo..stop]).zip(&pw[lo..stop]) {
+                        fine.add((si + sj - 2.0 * gij).max(0.0).sqrt(), wi * wj);
+                    }
+                } else {
+                    let cols: Vec<&[f64]> = gs.iter().map(|g| g.col_as_slice(ii)).collect();
+                    for j in lo..stop {
+                        for ((ds, sqs), col) in d.iter_mut().zip(&sq).zip(&cols) {
+                            *ds = (sqs[i] + sqs[j] - 2.0 * col[j - r0]).max(0.0).sqrt();
+                        }
+                        combine(mode, &d, 2.0 * pw[i] * pw[j], fine);
+                    }
                 }
-                combine(mode, &d, 2.0 * pw[i] * pw[j], fine);
+                lo = stop + 1;
+            }
+            match near {
+                None => fine.add_zero(pw[i] * pw[i] * dw),
+                Some(nf) => {
+                    // Near field: (i, i) and both orders of every adjacent (i, j), j > i.
+                    let mut one_sided = |a: usize, b: usize, fine: &mut FineHistogram| {
+                        let s = nf.samples[a] as usize;
+                        for &y in &nf.members[b] {
+                            let y = y as usize;
+                            for (ds, (e, k)) in d.iter_mut().zip(&full) {
+                                let (ps, py) = (&e[s * k..(s + 1) * k], &e[y * k..(y + 1) * k]);
+                                *ds = ps
+                                    .iter()
+                                    .zip(py)
+                                    .map(|(x, z)| (x - z) * (x - z))
+                                    .sum::<f64>()
+                                    .sqrt();
+                            }
+                            combine(mode, &d, pw[a] * nf.mass[y], fine);
+                        }
+                    };
+                    one_sided(i, i, fine);
+                    for &j in skip {
+                        one_sided(i, j as usize, fine);
+                        one_sided(j as usize, i, fine);
+                    }
+                }
             }
         }
     })
@@ -974,35 +1111,39 @@ fn lp_pairs(
     weights: &[Vec<f64>],
     inf: bool,
     mode: PairMode,
+    near: Option<&NearField<'_>>,
 ) -> FineHistogram {
     let m = rows.nrows();
     let mz = nodes.nrows();
-    // Kernel rows K[x][z] = Σ_i w_i φ_i(x) φ_i(z), stored as columns of an mz × m matrix.
-    let kr: Vec<Mat<f64>> = weights
-        .iter()
-        .map(|w| {
-            let psi = weighted_embedding(rows, w);
-            let wmax = w.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
-            let keep: Vec<usize> = (0..w.len().min(rows.ncols()))
-                .filter(|&i| w[i] != 0.0 && w[i].abs() >= 1e-8 * wmax)
-                .collect();
-            let z = Mat::from_fn(mz, keep.len(), |r, c| nodes[(r, keep[c])]);
-            let mut k = Mat::<f64>::zeros(mz, m);
-            if !keep.is_empty() {
-                matmul(
-                    k.as_mut(),
-                    Accum::Replace,
-                    z.as_ref(),
-                    psi.as_ref().transpose(),
-                    1.0,
-                    Par::Seq,
-                );
-            }
-            k
-        })
-        .collect();
-    let dist = |k: &Mat<f64>, i: usize, j: usize| -> f64 {
-        let (a, b) = (k.col_as_slice(i), k.col_as_slice(j));
+    // Kernel rows K[x][z] = Σ_i w_i φ_i(x) φ_i(z) of the points `at` (rows), as columns of an
+    // mz × rows matrix.
+    let kernel_rows = |at: MatRef<'_, f64>, w: &[f64]| -> Mat<f64> {
+        let psi = weighted_embedding(at, w);
+        let wmax = w.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
+        let keep: Vec<usize> = (0..w.len().min(at.ncols()))
+            .filter(|&i| w[i] != 0.0 && w[i].abs() >= 1e-8 * wmax)
+            .collect();
+        let z = Mat::from_fn(mz, keep.len(), |r, c| nodes[(r, keep[c])]);
+        let mut k = Mat::<f64>::zeros(mz, at.nrows());
+        if !keep.is_empty() {
+            matmul(
+                k.as_mut(),
+                Accum::Replace,
+                z.as_ref(),
+                psi.as_ref().transpose(),
+                1.0,
+                Par::Seq,
+            );
+        }
+        k
+    };
+    let kr: Vec<Mat<f64>> = weights.iter().map(|w| kernel_rows(rows, w)).collect();
+    // With a near field: kernel rows of every vertex.
+    let kall: Vec<Mat<f64>> = match near {
+        Some(nf) => weights.iter().map(|w| kernel_rows(nf.phi, w)).collect(),
+        None => Vec::new(),
+    };
+    let dist = |a: &[f64], b: &[f64]| -> f64 {
         if inf {
             a.iter()
                 .zip(b)
@@ -1017,8 +1158,9 @@ fn lp_pairs(
     };
     let per_scale: Vec<f64> = kr
         .iter()
+        .chain(kall.iter())
         .map(|k| {
-            2.0 * (0..m)
+            2.0 * (0..k.ncols())
                 .map(|i| {
                     let a = k.col_as_slice(i);
                     if inf {
@@ -1030,18 +1172,50 @@ fn lp_pairs(
                 .fold(0.0f64, f64::max)
         })
         .collect();
-    let bound = mode_bound(mode, &per_scale);
     let ns = kr.len();
+    let per_scale: Vec<f64> = (0..ns)
+        .map(|s| {
+            per_scale[s].max(if kall.is_empty() {
+                0.0
+            } else {
+                per_scale[ns + s]
+            })
+        })
+        .collect();
+    let bound = mode_bound(mode, &per_scale);
     let dw = diag_weight(mode, ns);
+    let empty: Vec<u32> = Vec::new();
     chunked_pairs(m, bound, |r0, r1, fine| {
         let mut d = vec![0.0; ns];
         for i in r0..r1 {
-            fine.add_zero(pw[i] * pw[i] * dw);
-            for j in (i + 1)..m {
-                for (s, k) in kr.iter().enumerate() {
-                    d[s] = dist(k, i, j);
+            let skip: &[u32] = near.map_or(&empty, |nf| &nf.adj[i]);
+            let mut lo = i + 1;
+            for stop in skip.iter().map(|&a| a as usize).chain(std::iter::once(m)) {
+                for j in lo..stop {
+                    for (ds, k) in d.iter_mut().zip(&kr) {
+                        *ds = dist(k.col_as_slice(i), k.col_as_slice(j));
+                    }
+                    combine(mode, &d, 2.0 * pw[i] * pw[j], fine);
                 }
-                combine(mode, &d, 2.0 * pw[i] * pw[j], fine);
+                lo = stop + 1;
+            }
+            match near {
+                None => fine.add_zero(pw[i] * pw[i] * dw),
+                Some(nf) => {
+                    let mut one_sided = |a: usize, b: usize, fine: &mut FineHistogram| {
+                        for &y in &nf.members[b] {
+                            for ((ds, k), ka) in d.iter_mut().zip(&kr).zip(&kall) {
+                                *ds = dist(k.col_as_slice(a), ka.col_as_slice(y as usize));
+                            }
+                            combine(mode, &d, pw[a] * nf.mass[y as usize], fine);
+                        }
+                    };
+                    one_sided(i, i, fine);
+                    for &j in skip {
+                        one_sided(i, j as usize, fine);
+                        one_sided(j as usize, i, fine);
+                    }
+                }
             }
         }
     })

@@ -109,6 +109,13 @@ fn quadrature_errors(specs: &[(&str, SignatureSpec)]) -> Vec<(f64, f64)> {
         .iter()
         .map(|(_, s)| compute_signature(&a, s).expect("signature"))
         .collect();
+    // Every quadrature carries the whole mass of μ × μ (area² = 1).
+    for sig in &sigs {
+        for c in 0..sig.channels.len() {
+            let m = sketch_of(sig, c).mass;
+            assert!((m - 1.0).abs() < 1e-9, "mass {m}");
+        }
+    }
     let mut worst = vec![(0.0f64, 0.0f64); specs.len()];
     for (c, &t) in DEFAULT_HEAT_SCALES.iter().enumerate() {
         let w = transfer_weights(&Kernel::Heat { t }, &a.spectrum.eigenvalues, zero_tol);
@@ -172,16 +179,18 @@ fn quadrature_sweep() {
         s.sketch_quantiles = q;
         specs.push((["exactQ512", "exactQ1024", "exactQ2048"][q / 1024], s));
     }
-    for (name, samples, cell_means) in [
-        ("fps500", 500, false),
-        ("fps1000", 1000, false),
-        ("fps1000cm", 1000, true),
-        ("fps1500", 1500, false),
+    for (name, samples, cell_means, near_field) in [
+        ("fps500", 500, false, true),
+        ("fps1000", 1000, false, true),
+        ("fps1000-nonear", 1000, false, false),
+        ("fps1000cm", 1000, true, false),
+        ("fps1500", 1500, false, true),
     ] {
         let mut s = base.clone();
         s.quadrature = PairQuadrature::Farthest {
             samples,
             cell_means,
+            near_field,
         };
         specs.push((name, s));
     }
@@ -209,6 +218,7 @@ fn timing_10k() {
     s1500.quadrature = PairQuadrature::Farthest {
         samples: 1500,
         cell_means: false,
+        near_field: true,
     };
     specs.push(("heat6-l2-fps1500", s1500));
     specs.push((
@@ -265,7 +275,7 @@ fn timing_parts_10k() {
             zt,
         )];
         let t = std::time::Instant::now();
-        let fine = l2_pairs(rows.as_ref(), &q.weights, &w, PairMode::Single);
+        let fine = l2_pairs(rows.as_ref(), &q.weights, &w, PairMode::Single, None);
         let t1 = t.elapsed().as_secs_f64() * 1e3;
         let _ = fine.sketch(1024);
         println!(
@@ -824,4 +834,33 @@ fn quadrature_error_10k() {
         "worst nL1 at 1x / 0.5x / 2x window: default {worst:.4?}, exact sketch {worst_sketch:.4?}"
     );
     assert!(worst[0] < 0.02);
+}
+
+/// Quadrature error of the L1 / L∞ channels (300, 500, 800 nodes) against 1 200 nodes on a
+/// 2 562-vertex shape (not a pass/fail test:
+/// `cargo test --release --lib signature::tests::lp_quadrature_error -- --ignored --nocapture`).
+#[test]
+#[ignore]
+fn lp_quadrature_error() {
+    let a = analysis_of(&generate::bumpy_sphere(4, 0.2), 100, true);
+    let n = 1200;
+    let chans = vec![
+        ChannelSpec::heat(0.04, Norm::L1),
+        ChannelSpec::heat(0.1, Norm::L1),
+        ChannelSpec::heat(0.1, Norm::LInf),
+    ];
+    let mut exact = SignatureSpec::with_channels(chans.clone());
+    exact.lp_samples = n;
+    let e = compute_signature(&a, &exact).expect("sig");
+    for m in [300, 500, 800] {
+        let mut s = SignatureSpec::with_channels(chans.clone());
+        s.lp_samples = m;
+        let sig = compute_signature(&a, &s).expect("sig");
+        for (c, ch) in chans.iter().enumerate() {
+            let es = sketch_of(&e, c);
+            let w = es.quantiles[(0.95 * (es.quantiles.len() - 1) as f64) as usize];
+            let err = nl1(&hist(sketch_of(&sig, c), w).prob, &hist(es, w).prob);
+            println!("{} with {m} nodes vs {n}: nL1 {err:.4}", ch.name());
+        }
+    }
 }
