@@ -727,6 +727,8 @@ fn restart_keeps_shapes_and_calibration() {
     let s = Server::start(dir.path(), |_| {});
     let shapes = ingest_corpus(s.addr);
     let before = get(s.addr, "/v1/index").json();
+    let e = migrate(dir.path()).unwrap_err().to_string();
+    assert!(e.contains("in use"), "migrate while serving: {e}");
     let hits_before = post_json(
         s.addr,
         "/v1/search",

@@ -6,7 +6,7 @@
 //! in order, stamps the new version and flushes. A newer or unknown version is refused and the
 //! directory is left untouched.
 
-use super::store::{read_schema_version, storage_err, Store, SCHEMA_VERSION};
+use super::store::{open_db, read_schema_version, storage_err, Store, SCHEMA_VERSION};
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -58,10 +58,7 @@ pub fn migrate_with(dir: &Path, steps: &[Step], target: u32) -> Result<MigrateOu
         return Ok(MigrateOutcome::Created(SCHEMA_VERSION));
     }
     let found = {
-        let db = sled::Config::new()
-            .path(&db_path)
-            .open()
-            .map_err(|e| storage_err(format!("cannot open {}: {e}", db_path.display())))?;
+        let db = open_db(&db_path)?;
         read_schema_version(&db)?
     };
     let Some(from) = found else {
@@ -94,10 +91,7 @@ pub fn migrate_with(dir: &Path, steps: &[Step], target: u32) -> Result<MigrateOu
         v += 1;
     }
     let backup = backup_dir(dir, from)?;
-    let db = sled::Config::new()
-        .path(&db_path)
-        .open()
-        .map_err(storage_err)?;
+    let db = open_db(&db_path)?;
     for step in plan {
         (step.apply)(&db)?;
         let meta = db.open_tree("meta").map_err(storage_err)?;
@@ -144,10 +138,7 @@ fn copy_tree(from: &Path, to: &Path) -> Result<()> {
 /// Writes a schema version into an index directory (for tests of the refusal paths and for
 /// hand repairs). Creates the database if needed.
 pub fn stamp_version(dir: &Path, version: u32) -> Result<()> {
-    let db = sled::Config::new()
-        .path(dir.join("db"))
-        .open()
-        .map_err(storage_err)?;
+    let db = open_db(&dir.join("db"))?;
     db.open_tree("meta")
         .map_err(storage_err)?
         .insert("schema_version", &version.to_be_bytes())

@@ -69,6 +69,21 @@ pub fn storage_err(e: impl std::fmt::Display) -> Error {
     Error::Io(std::io::Error::other(format!("index storage: {e}")))
 }
 
+/// Opens the sled database at `path`, with a clear message when another process holds it.
+pub fn open_db(path: &Path) -> Result<sled::Db> {
+    sled::Config::new().path(path).open().map_err(|e| {
+        let msg = e.to_string();
+        if msg.contains("could not acquire lock") {
+            storage_err(format!(
+                "{} is in use by another process (a running `shapeseek serve`?): {msg}",
+                path.display()
+            ))
+        } else {
+            storage_err(format!("cannot open {}: {msg}", path.display()))
+        }
+    })
+}
+
 /// Reads the schema version stored in an open database (None: an empty, new database).
 pub fn read_schema_version(db: &sled::Db) -> Result<Option<u32>> {
     let meta = db.open_tree("meta").map_err(storage_err)?;
@@ -113,10 +128,7 @@ impl Store {
     /// `shapeseek migrate`; newer or unknown: refused).
     pub fn open(dir: &Path) -> Result<Store> {
         std::fs::create_dir_all(dir)?;
-        let db = sled::Config::new()
-            .path(dir.join("db"))
-            .open()
-            .map_err(|e| storage_err(format!("cannot open {}: {e}", dir.display())))?;
+        let db = open_db(&dir.join("db"))?;
         match read_schema_version(&db)? {
             Some(SCHEMA_VERSION) => {}
             None => {
