@@ -9,10 +9,12 @@ pub mod baseline;
 pub mod eigen;
 pub mod error;
 pub mod eval;
+pub mod index;
 pub mod laplace;
 pub mod mesh;
 pub mod pipeline;
 pub mod ranking;
+pub mod server;
 pub mod signature;
 pub mod spectrum;
 
