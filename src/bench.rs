@@ -28,6 +28,21 @@ pub struct BenchArgs {
 enum BenchWhat {
     /// Spectrum of generated bumpy tori (no symmetry) of the given sizes.
     Spectrum(SpectrumBench),
+    /// Signature computation from a computed spectrum (six-scale heat L2 and other channels).
+    Signature(SignatureBench),
+}
+
+#[derive(Args)]
+struct SignatureBench {
+    /// Approximate vertex count of the generated shape.
+    #[arg(long, default_value_t = 10000)]
+    size: usize,
+    /// Eigenpairs of the spectrum the signatures are computed from.
+    #[arg(long, default_value_t = 100)]
+    k: usize,
+    /// Repetitions per signature spec (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    repeat: usize,
 }
 
 #[derive(Args)]
@@ -89,6 +104,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             Some(case) => run_single(case, b.export.as_deref()),
             None => run_all(b),
         },
+        BenchWhat::Signature(b) => run_signature(b),
     }
 }
 
@@ -290,6 +306,96 @@ fn run_all(b: &SpectrumBench) -> Result<()> {
             path,
             serde_json::to_vec_pretty(&results).map_err(|e| Error::Numerical(e.to_string()))?,
         )?;
+    }
+    Ok(())
+}
+
+/// Wall and process CPU time of a closure, in milliseconds.
+fn timed<T>(f: impl FnOnce() -> T) -> (T, f64, f64) {
+    let cpu = || {
+        // utime + stime of this process from /proc/self/stat, in clock ticks of 10 ms (Linux).
+        std::fs::read_to_string("/proc/self/stat")
+            .ok()
+            .and_then(|s| {
+                let rest = s.rsplit_once(')')?.1.split_whitespace().collect::<Vec<_>>();
+                let ut: f64 = rest.get(11)?.parse().ok()?;
+                let st: f64 = rest.get(12)?.parse().ok()?;
+                Some((ut + st) * 10.0)
+            })
+            .unwrap_or(f64::NAN)
+    };
+    let (c0, t0) = (cpu(), Instant::now());
+    let out = f();
+    (out, t0.elapsed().as_secs_f64() * 1e3, cpu() - c0)
+}
+
+fn run_signature(b: &SignatureBench) -> Result<()> {
+    use shapeseek::pipeline::{analyze, AnalyzeOptions};
+    use shapeseek::signature::{compute_signature, ChannelSpec, Norm, SignatureSpec};
+    let (nu, nv) = grid(b.size);
+    let mesh = generate::bumpy_torus(nu, nv);
+    let opts = AnalyzeOptions {
+        eigen: EigenOptions {
+            k: b.k,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let (analysis, wall, cpu) = timed(|| analyze(&mesh, &opts));
+    let analysis = analysis?;
+    println!(
+        "shape: {} vertices, k = {}; prepare + spectrum {wall:.0} ms wall ({cpu:.0} ms CPU)",
+        analysis.mesh.vertices.len(),
+        b.k
+    );
+    let heat6: Vec<ChannelSpec> = [0.016, 0.04, 0.1, 0.25, 0.625, 1.5625]
+        .iter()
+        .map(|&t| ChannelSpec::heat(t, Norm::L2))
+        .collect();
+    let specs = vec![
+        (
+            "six-scale heat L2 (default quadrature)",
+            SignatureSpec::with_channels(heat6),
+        ),
+        (
+            "commute time + step + ShapeDNA + D2 + geodesic",
+            SignatureSpec::with_channels(vec![
+                ChannelSpec::commute_time(),
+                ChannelSpec::step(4.0 * std::f64::consts::PI * 10.0),
+                ChannelSpec::shape_dna(50),
+                ChannelSpec::d2(2000),
+                ChannelSpec::geodesic(None),
+            ]),
+        ),
+        (
+            "heat L1 + L∞ at t = 0.1",
+            SignatureSpec::with_channels(vec![
+                ChannelSpec::heat(0.1, Norm::L1),
+                ChannelSpec::heat(0.1, Norm::LInf),
+            ]),
+        ),
+    ];
+    println!(
+        "{:<48} {:>12} {:>12} {:>12}",
+        "signature spec", "median ms", "min ms", "CPU ms"
+    );
+    for (name, spec) in &specs {
+        let mut walls = Vec::new();
+        let mut cpus = Vec::new();
+        for _ in 0..b.repeat.max(1) {
+            let (sig, wall, cpu) = timed(|| compute_signature(&analysis, spec));
+            sig?;
+            walls.push(wall);
+            cpus.push(cpu);
+        }
+        walls.sort_by(f64::total_cmp);
+        cpus.sort_by(f64::total_cmp);
+        println!(
+            "{name:<48} {:>12.1} {:>12.1} {:>12.1}",
+            walls[walls.len() / 2],
+            walls[0],
+            cpus[cpus.len() / 2]
+        );
     }
     Ok(())
 }

@@ -9,12 +9,14 @@ pub mod baseline;
 pub mod eigen;
 pub mod error;
 pub mod eval;
+pub mod index;
 pub mod laplace;
 pub mod mesh;
 pub mod pipeline;
 pub mod ranking;
 pub mod rerank;
 pub mod scale;
+pub mod server;
 pub mod signature;
 pub mod spectrum;
 

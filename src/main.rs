@@ -28,10 +28,14 @@ struct Cli {
 enum Command {
     /// Read a mesh (or generate one), prepare it and print its Laplace–Beltrami spectrum.
     Spectrum(SpectrumArgs),
-    /// Performance benchmarks (spectrum: Laplacian + factorisation + eigensolve, vs SciPy).
-    Bench(bench::BenchArgs),
+    /// Run the REST service on an embedded index (default ./shapeseek-data, 127.0.0.1:8080).
+    Serve(shapeseek::server::ServeArgs),
+    /// Upgrade an index directory to this build's schema version (after a backup copy).
+    Migrate(shapeseek::server::MigrateArgs),
     /// Evaluate retrieval on a benchmark manifest (mAP per transformation, ROC, PR).
     Eval(shapeseek::eval::EvalArgs),
+    /// Performance benchmarks (spectrum: Laplacian + factorisation + eigensolve, vs SciPy).
+    Bench(bench::BenchArgs),
 }
 
 #[derive(Args)]
@@ -238,17 +242,29 @@ fn run_spectrum(args: &SpectrumArgs) -> shapeseek::Result<()> {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
     let cli = Cli::parse();
+    // `serve` sets up its own (text or JSON) structured logging from its configuration.
+    if !matches!(cli.command, Command::Serve(_)) {
+        tracing_subscriber::fmt()
+            .with_env_filter(
+                tracing_subscriber::EnvFilter::try_from_default_env()
+                    .unwrap_or_else(|_| "info".into()),
+            )
+            .with_writer(std::io::stderr)
+            .init();
+    }
     let result = match &cli.command {
         Command::Spectrum(a) => run_spectrum(a),
-        Command::Bench(a) => bench::run(a),
+        Command::Serve(a) => a.to_config().and_then(|cfg| {
+            tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()
+                .map_err(shapeseek::Error::Io)?
+                .block_on(shapeseek::server::serve(cfg))
+        }),
+        Command::Migrate(a) => a.run().map(|msg| println!("{msg}")),
         Command::Eval(a) => shapeseek::eval::run(a),
+        Command::Bench(a) => bench::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -97,6 +97,9 @@ mod print_configs {
     #[test]
     #[ignore]
     fn print_default_config_json() {
-        println!("{}", serde_json::to_string(&crate::ranking::default_config()).unwrap());
+        println!(
+            "{}",
+            serde_json::to_string(&crate::ranking::default_config()).unwrap()
+        );
     }
 }

@@ -24,6 +24,10 @@
 //!   against 1 200 nodes on a 2 562-vertex shape (`lp_quadrature_error`, ignored): nL1 0.030–0.035
 //!   with 300 nodes, 0.016 with 500, 0.007–0.009 with 800.
 //!
+//! * Not implemented: the scale-invariant kernel of eq. 21. Its log-time derivative and Fourier
+//!   modulus need the kernel on a dense log-scale grid per pair, and here every shape is already
+//!   normalised to unit area; the commute-time kernel gives exact scale invariance (tested).
+//!
 //! # Pair quadrature (eq. 10)
 //!
 //! F is the push-forward of `μ × μ`. [`PairQuadrature::AllVertices`] uses every ordered vertex
@@ -80,8 +84,9 @@
 //! near field. Channels run in
 //! parallel (rayon), each over row blocks; per-block histograms are merged in block order, so
 //! results are bitwise deterministic whatever the thread count. Six-scale heat-L2 signature of a
-//! 10 000-vertex shape with k = 100: median **213 ms** (5 runs, 205–217 ms) on the shared 2-core
-//! machine at load ≈ 5
+//! 10 000-vertex shape with k = 100: **134 ms of CPU time** (both threads together, so ≈ 70–135 ms
+//! wall on two idle cores); measured wall time on the shared 2-core machine at load average 5–10:
+//! 213–330 ms median, 205–250 ms best of 10
 //! (`cargo test --release --lib signature::tests::timing_10k -- --ignored --nocapture`).
 
 use crate::mesh::{norm, sub, Mesh};
@@ -616,18 +621,26 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
     let l2_rows = l2_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means));
     let near = match (&l2_quad, &graph) {
         (Some(q), Some(g)) if near_field && !cell_means => match (&q.points, &q.owner) {
-            (Some(points), Some(owner)) => {
-                Some(NearField::new(g, owner, points.clone(), phi, &sp.mass))
-            }
+            (Some(points), Some(owner)) => Some(NearField::new(
+                g,
+                owner,
+                points.clone(),
+                &sp.eigenvectors,
+                &sp.mass,
+            )),
             _ => None,
         },
         _ => None,
     };
     let lp_near = match (&lp_quad, &graph) {
         (Some(q), Some(g)) if near_field && !cell_means => match (&q.points, &q.owner) {
-            (Some(points), Some(owner)) => {
-                Some(NearField::new(g, owner, points.clone(), phi, &sp.mass))
-            }
+            (Some(points), Some(owner)) => Some(NearField::new(
+                g,
+                owner,
+                points.clone(),
+                &sp.eigenvectors,
+                &sp.mass,
+            )),
             _ => None,
         },
         _ => None,
@@ -840,13 +853,18 @@ fn spectral_channel(
 /// Columns `i` with `w_i² ≥ 1e-16 · max w²` (the rest change d² by less than 1e-16 relative),
 /// and the scaled embedding `rows[:, i] · w_i` restricted to them.
 fn weighted_embedding(rows: MatRef<'_, f64>, w: &[f64]) -> Mat<f64> {
-    let wmax = w.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
-    let keep: Vec<usize> = (0..w.len().min(rows.ncols()))
-        .filter(|&i| w[i] != 0.0 && w[i].abs() >= 1e-8 * wmax)
-        .collect();
+    let keep = kept_columns(w, rows.ncols());
     Mat::from_fn(rows.nrows(), keep.len(), |r, c| {
         rows[(r, keep[c])] * w[keep[c]]
     })
+}
+
+/// Indices `i < ncols` with `w_i ≠ 0` and `|w_i| ≥ 10⁻⁸ max |w|`.
+fn kept_columns(w: &[f64], ncols: usize) -> Vec<usize> {
+    let wmax = w.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
+    (0..w.len().min(ncols))
+        .filter(|&i| w[i] != 0.0 && w[i].abs() >= 1e-8 * wmax)
+        .collect()
 }
 
 /// Row ranges of an m × m upper triangle (diagonal included) with about equal pair counts.
@@ -925,12 +943,14 @@ fn diag_weight(mode: PairMode, scales: usize) -> f64 {
 pub(crate) struct NearField<'a> {
     /// Per sample: adjacent samples (cells sharing a mesh edge) with a larger index, sorted.
     adj: Vec<Vec<u32>>,
+    /// Per sample: every adjacent sample, sorted.
+    nbrs: Vec<Vec<u32>>,
     /// Per sample: member vertices of its cell.
     members: Vec<Vec<u32>>,
     /// Sample vertices.
     samples: Vec<u32>,
     /// Eigenvectors at every vertex.
-    phi: MatRef<'a, f64>,
+    phi: &'a Mat<f64>,
     /// Vertex areas.
     mass: &'a [f64],
 }
@@ -940,7 +960,7 @@ impl<'a> NearField<'a> {
         graph: &EdgeGraph,
         owner: &[u32],
         samples: Vec<u32>,
-        phi: MatRef<'a, f64>,
+        phi: &'a Mat<f64>,
         mass: &'a [f64],
     ) -> Self {
         let m = samples.len();
@@ -962,8 +982,18 @@ impl<'a> NearField<'a> {
             a.sort_unstable();
             a.dedup();
         }
+        let mut nbrs = adj.clone();
+        for (i, a) in adj.iter().enumerate() {
+            for &j in a {
+                nbrs[j as usize].push(i as u32);
+            }
+        }
+        for a in &mut nbrs {
+            a.sort_unstable();
+        }
         Self {
             adj,
+            nbrs,
             members,
             samples,
             phi,
@@ -974,13 +1004,18 @@ impl<'a> NearField<'a> {
 
 /// Row-major `n × kept` embedding `φ_i(v) w_i` of every vertex (the columns of
 /// [`weighted_embedding`]).
-fn vertex_embedding(phi: MatRef<'_, f64>, w: &[f64]) -> (Vec<f64>, usize) {
-    let e = weighted_embedding(phi, w);
-    let k = e.ncols();
-    let mut out = vec![0.0; e.nrows() * k];
-    for c in 0..k {
-        for (v, x) in e.col_as_slice(c).iter().enumerate() {
-            out[v * k + c] = *x;
+fn vertex_embedding(phi: &Mat<f64>, w: &[f64]) -> (Vec<f64>, usize) {
+    let keep = kept_columns(w, phi.ncols());
+    let (n, k) = (phi.nrows(), keep.len());
+    let mut out = vec![0.0; n * k];
+    // Blocked transpose: a block of 64 output rows stays in cache while the columns are read.
+    for v0 in (0..n).step_by(64) {
+        let v1 = (v0 + 64).min(n);
+        for (c, &i) in keep.iter().enumerate() {
+            let wi = w[i];
+            for (v, x) in phi.col_as_slice(i)[v0..v1].iter().enumerate() {
+                out[(v0 + v) * k + c] = x * wi;
+            }
         }
     }
     (out, k)
@@ -1040,7 +1075,7 @@ fn l2_pairs(
     let ns = psi.len();
     let dw = diag_weight(mode, ns);
     let empty: Vec<u32> = Vec::new();
-    chunked_pairs(m, bound, |r0, r1, fine| {
+    let far = chunked_pairs(m, bound, |r0, r1, fine| {
         let r = r1 - r0;
         let gs: Vec<Mat<f64>> = psi
             .iter()
@@ -1084,35 +1119,49 @@ fn l2_pairs(
                 }
                 lo = stop + 1;
             }
-            match near {
-                None => fine.add_zero(pw[i] * pw[i] * dw),
-                Some(nf) => {
-                    // Near field: (i, i) and both orders of every adjacent (i, j), j > i.
-                    let mut one_sided = |a: usize, b: usize, fine: &mut FineHistogram| {
-                        let s = nf.samples[a] as usize;
-                        for &y in &nf.members[b] {
-                            let y = y as usize;
-                            for (ds, (e, k)) in d.iter_mut().zip(&full) {
-                                let (ps, py) = (&e[s * k..(s + 1) * k], &e[y * k..(y + 1) * k]);
-                                *ds = ps
-                                    .iter()
-                                    .zip(py)
-                                    .map(|(x, z)| (x - z) * (x - z))
-                                    .sum::<f64>()
-                                    .sqrt();
-                            }
-                            combine(mode, &d, pw[a] * nf.mass[y], fine);
-                        }
-                    };
-                    one_sided(i, i, fine);
-                    for &j in skip {
-                        one_sided(i, j as usize, fine);
-                        one_sided(j as usize, i, fine);
-                    }
-                }
+            if near.is_none() {
+                fine.add_zero(pw[i] * pw[i] * dw);
             }
         }
-    })
+    });
+    let Some(nf) = near else {
+        return far;
+    };
+    // Near field, cell by cell (each cell's member rows are read once): pairs (s_a, y) for
+    // y in cell b and a = b or a adjacent to b, weight W_a a_y.
+    let mut total = far;
+    let ncell = nf.members.len();
+    let groups: Vec<usize> = (0..ncell).step_by(64).collect();
+    for block in groups.chunks(16) {
+        let parts: Vec<FineHistogram> = block
+            .par_iter()
+            .map(|&b0| {
+                let mut fine = FineHistogram::new(bound);
+                let mut d = vec![0.0; ns];
+                for b in b0..(b0 + 64).min(ncell) {
+                    for &y in &nf.members[b] {
+                        let y = y as usize;
+                        for a in std::iter::once(b).chain(nf.nbrs[b].iter().map(|&a| a as usize)) {
+                            let s = nf.samples[a] as usize;
+                            for (ds, (e, k)) in d.iter_mut().zip(&full) {
+                                *ds = squared_distance(
+                                    &e[s * k..(s + 1) * k],
+                                    &e[y * k..(y + 1) * k],
+                                )
+                                .sqrt();
+                            }
+                            combine(mode, &d, pw[a] * nf.mass[y], &mut fine);
+                        }
+                    }
+                }
+                fine
+            })
+            .collect();
+        for p in &parts {
+            total.merge(p);
+        }
+    }
+    total
 }
 
 /// L1 / L∞ distances `‖k(x,·) − k(y,·)‖` with the kernel rows evaluated on the quadrature nodes
@@ -1132,10 +1181,7 @@ fn lp_pairs(
     // mz × rows matrix.
     let kernel_rows = |at: MatRef<'_, f64>, w: &[f64]| -> Mat<f64> {
         let psi = weighted_embedding(at, w);
-        let wmax = w.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
-        let keep: Vec<usize> = (0..w.len().min(at.ncols()))
-            .filter(|&i| w[i] != 0.0 && w[i].abs() >= 1e-8 * wmax)
-            .collect();
+        let keep = kept_columns(w, at.ncols());
         let z = Mat::from_fn(mz, keep.len(), |r, c| nodes[(r, keep[c])]);
         let mut k = Mat::<f64>::zeros(mz, at.nrows());
         if !keep.is_empty() {
@@ -1153,20 +1199,17 @@ fn lp_pairs(
     let kr: Vec<Mat<f64>> = weights.iter().map(|w| kernel_rows(rows, w)).collect();
     // With a near field: kernel rows of every vertex.
     let kall: Vec<Mat<f64>> = match near {
-        Some(nf) => weights.iter().map(|w| kernel_rows(nf.phi, w)).collect(),
+        Some(nf) => weights
+            .iter()
+            .map(|w| kernel_rows(nf.phi.as_ref(), w))
+            .collect(),
         None => Vec::new(),
     };
     let dist = |a: &[f64], b: &[f64]| -> f64 {
         if inf {
-            a.iter()
-                .zip(b)
-                .fold(0.0f64, |acc, (x, y)| acc.max((x - y).abs()))
+            max_abs_difference(a, b)
         } else {
-            a.iter()
-                .zip(b)
-                .zip(pw)
-                .map(|((x, y), wz)| wz * (x - y).abs())
-                .sum()
+            weighted_l1_distance(a, b, pw)
         }
     };
     let per_scale: Vec<f64> = kr
@@ -1232,6 +1275,61 @@ fn lp_pairs(
             }
         }
     })
+}
+
+/// `Σ (a_i − b_i)²` with four independent accumulators (fixed order: deterministic).
+#[inline]
+fn squared_distance(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for l in 0..4 {
+            let t = x[l] - y[l];
+            acc[l] += t * t;
+        }
+    }
+    let mut tail = 0.0;
+    for (x, y) in ra.iter().zip(rb) {
+        tail += (x - y) * (x - y);
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// `Σ w_i |a_i − b_i|` with four independent accumulators (fixed order: deterministic).
+#[inline]
+fn weighted_l1_distance(a: &[f64], b: &[f64], w: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (ca, cb, cw) = (a.chunks_exact(4), b.chunks_exact(4), w.chunks_exact(4));
+    let (ra, rb, rw) = (ca.remainder(), cb.remainder(), cw.remainder());
+    for ((x, y), z) in ca.zip(cb).zip(cw) {
+        for l in 0..4 {
+            acc[l] += z[l] * (x[l] - y[l]).abs();
+        }
+    }
+    let mut tail = 0.0;
+    for ((x, y), z) in ra.iter().zip(rb).zip(rw) {
+        tail += z * (x - y).abs();
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// `max |a_i − b_i|`.
+#[inline]
+fn max_abs_difference(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for l in 0..4 {
+            acc[l] = acc[l].max((x[l] - y[l]).abs());
+        }
+    }
+    let mut m = acc[0].max(acc[1]).max(acc[2].max(acc[3]));
+    for (x, y) in ra.iter().zip(rb) {
+        m = m.max((x - y).abs());
+    }
+    m
 }
 
 /// Number of bins of the fine histogram a sketch is read from.

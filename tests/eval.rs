@@ -5,8 +5,8 @@
 use shapeseek::eval::cache::{unwrap_envelope, wrap_envelope, write_atomic};
 use shapeseek::eval::manifest::{Manifest, ManifestError};
 use shapeseek::eval::metrics::{
-    auc, average_precision, eer, evaluate, evaluate_query, pr_curve, pr_on_grid, pr_precision_at, rank,
-    roc_curve, roc_on_grid, roc_tpr_at, ALL, ALL_WO_SCALE, CURVE_GRID,
+    auc, average_precision, eer, evaluate, evaluate_query, pr_curve, pr_on_grid, pr_precision_at,
+    rank, roc_curve, roc_on_grid, roc_tpr_at, ALL, ALL_WO_SCALE, CURVE_GRID,
 };
 use shapeseek::eval::report::Reference;
 use shapeseek::eval::{evaluate as run_eval, load_configs, union_specs, EvalArgs};
@@ -22,7 +22,10 @@ fn close(a: f64, b: f64) -> bool {
 
 #[test]
 fn ap_perfect_ranking_is_one() {
-    assert_eq!(average_precision(&[true, true, true, false, false]), Some(1.0));
+    assert_eq!(
+        average_precision(&[true, true, true, false, false]),
+        Some(1.0)
+    );
     assert_eq!(average_precision(&[true]), Some(1.0));
 }
 
@@ -32,7 +35,10 @@ fn ap_known_mixed_case() {
     let ap = average_precision(&[true, false, true, false, false, true]).unwrap();
     assert!(close(ap, (1.0 + 2.0 / 3.0 + 0.5) / 3.0), "{ap}");
     // Worst case: the single relevant shape last of 4: 1/4.
-    assert!(close(average_precision(&[false, false, false, true]).unwrap(), 0.25));
+    assert!(close(
+        average_precision(&[false, false, false, true]).unwrap(),
+        0.25
+    ));
     // Nothing relevant: no AP.
     assert_eq!(average_precision(&[false, false]), None);
 }
@@ -73,7 +79,10 @@ fn roc_auc_and_eer_by_hand() {
     // Positives at 0.1 and 0.3, negatives at 0.2 and 0.4: 3 of 4 (pos, neg) pairs ordered right.
     let pairs = [(0.1, true), (0.2, false), (0.3, true), (0.4, false)];
     let roc = roc_curve(&pairs).unwrap();
-    assert_eq!(roc, vec![(0.0, 0.0), (0.0, 0.5), (0.5, 0.5), (0.5, 1.0), (1.0, 1.0)]);
+    assert_eq!(
+        roc,
+        vec![(0.0, 0.0), (0.0, 0.5), (0.5, 0.5), (0.5, 1.0), (1.0, 1.0)]
+    );
     assert!(close(auc(&roc), 0.75));
     assert!(close(eer(&roc), 0.5));
     // Perfect separation: AUC 1, EER 0.
@@ -89,7 +98,15 @@ fn roc_auc_and_eer_by_hand() {
     assert_eq!(roc, vec![(0.0, 0.0), (1.0, 1.0)]);
     assert!(close(auc(&roc), 0.5));
     // The one-sweep grid versions agree with the pointwise definitions.
-    let roc = roc_curve(&[(0.1, true), (0.2, false), (0.2, true), (0.3, false), (0.5, true), (0.7, false)]).unwrap();
+    let roc = roc_curve(&[
+        (0.1, true),
+        (0.2, false),
+        (0.2, true),
+        (0.3, false),
+        (0.5, true),
+        (0.7, false),
+    ])
+    .unwrap();
     let pr = pr_curve(&[true, false, true, false, true, false]);
     let (rg, pg) = (roc_on_grid(&roc), pr_on_grid(&pr));
     for i in 0..CURVE_GRID {
@@ -109,13 +126,15 @@ fn roc_auc_and_eer_by_hand() {
 fn map_aggregation_per_transform_all_and_without_scale() {
     // 6 shapes, classes A A A B B B; transforms null, iso, scale per class.
     let classes = [0, 0, 0, 1, 1, 1];
-    let transforms: Vec<String> =
-        ["null", "isometry", "scale", "null", "isometry", "scale"].iter().map(|s| s.to_string()).collect();
+    let transforms: Vec<String> = ["null", "isometry", "scale", "null", "isometry", "scale"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
     let strengths = [0, 1, 2, 0, 1, 2];
     let n = 6;
     // Points on a line: A at 0, 1, 10; B at 2, 3, 4; distance = |x_i - x_j|.
-    let x = [0.0, 1.0, 10.0, 2.0, 3.0, 4.0];
-    let dist: Vec<f64> = (0..n * n).map(|k| (x[k / n] - x[k % n]) as f64).map(f64::abs).collect();
+    let x = [0.0f64, 1.0, 10.0, 2.0, 3.0, 4.0];
+    let dist: Vec<f64> = (0..n * n).map(|k| (x[k / n] - x[k % n]).abs()).collect();
     let ev = evaluate(&dist, n, &classes, &transforms, &strengths, &[true; 6]);
     // APs by hand (rankings by |x_i - x_j|, ties by index):
     // q0 (x=0): 1(A) 3 4 5 2(A)          -> (1/1 + 2/5)/2 = 0.7
@@ -126,7 +145,12 @@ fn map_aggregation_per_transform_all_and_without_scale() {
     // q5 (x=4): 4(B) 3(B) 1 0 2          -> 1
     let ap = [0.7, 0.7, 0.325, 0.5, 1.0, 1.0];
     for (q, r) in ev.queries.iter().enumerate() {
-        assert!(close(r.ap.unwrap(), ap[q]), "query {q}: {:?} vs {}", r.ap, ap[q]);
+        assert!(
+            close(r.ap.unwrap(), ap[q]),
+            "query {q}: {:?} vs {}",
+            r.ap,
+            ap[q]
+        );
     }
     let m = |g: &str| ev.group(g).unwrap().map.unwrap();
     assert!(close(m("null"), (0.7 + 0.5) / 2.0));
@@ -136,7 +160,10 @@ fn map_aggregation_per_transform_all_and_without_scale() {
     assert!(close(m(ALL_WO_SCALE), (0.7 + 0.7 + 0.5 + 1.0) / 4.0));
     let names: Vec<&str> = ev.groups.iter().map(|g| g.0.as_str()).collect();
     assert_eq!(names, ["null", "isometry", "scale", ALL, ALL_WO_SCALE]);
-    assert!(close(ev.per_strength["scale@2"].map.unwrap(), (0.325 + 1.0) / 2.0));
+    assert!(close(
+        ev.per_strength["scale@2"].map.unwrap(),
+        (0.325 + 1.0) / 2.0
+    ));
     // AUC of q2: positives 1 (d=9), 0 (d=10) against negatives at 6, 7, 8: all wrong -> 0.
     assert!(close(auc(ev.queries[2].roc.as_ref().unwrap()), 0.0));
 
@@ -153,7 +180,10 @@ fn map_aggregation_per_transform_all_and_without_scale() {
 fn queries_without_relevant_shapes_are_counted_not_averaged() {
     // Class 1 has a single shape: its query has no AP and is left out of the means.
     let classes = [0, 0, 1];
-    let transforms: Vec<String> = ["null", "null", "null"].iter().map(|s| s.to_string()).collect();
+    let transforms: Vec<String> = ["null", "null", "null"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
     let dist = vec![0.0, 1.0, 2.0, 1.0, 0.0, 2.0, 2.0, 2.0, 0.0];
     let ev = evaluate(&dist, 3, &classes, &transforms, &[0, 0, 0], &[true; 3]);
     let all = ev.group(ALL).unwrap();
@@ -170,24 +200,39 @@ fn manifest_parses_and_resolves_paths() {
     let text = format!("{HEADER}a,meshes/a.obj,cat,null,0,cat-poses\nb,/abs/b.off,dog,noise,2,x\n");
     let m = Manifest::parse(&text, Path::new("/bench/dev")).unwrap();
     assert_eq!(m.entries.len(), 2);
-    assert_eq!(m.entries[0].resolved, PathBuf::from("/bench/dev/meshes/a.obj"));
+    assert_eq!(
+        m.entries[0].resolved,
+        PathBuf::from("/bench/dev/meshes/a.obj")
+    );
     assert_eq!(m.entries[1].resolved, PathBuf::from("/abs/b.off"));
     assert_eq!(m.entries[1].strength, 2);
-    assert_eq!(m.transforms(), vec!["null".to_string(), "noise".to_string()]);
+    assert_eq!(
+        m.transforms(),
+        vec!["null".to_string(), "noise".to_string()]
+    );
     // Column order is free, extra columns ignored.
     let text = "class,id,extra,path,transform,source_pose,strength\ncat,a,zz,a.obj,null,p,0\n";
     let m = Manifest::parse(text, Path::new(".")).unwrap();
-    assert_eq!((m.entries[0].id.as_str(), m.entries[0].class.as_str()), ("a", "cat"));
+    assert_eq!(
+        (m.entries[0].id.as_str(), m.entries[0].class.as_str()),
+        ("a", "cat")
+    );
 }
 
 #[test]
 fn manifest_errors_are_typed() {
     let base = Path::new(".");
-    match Manifest::parse("id,path,transform,strength,source_pose\na,a.obj,null,0,p\n", base) {
+    match Manifest::parse(
+        "id,path,transform,strength,source_pose\na,a.obj,null,0,p\n",
+        base,
+    ) {
         Err(ManifestError::MissingColumn(c)) => assert_eq!(c, "class"),
         other => panic!("expected MissingColumn, got {other:?}"),
     }
-    match Manifest::parse(&format!("{HEADER}a,a.obj,cat,null,0,p\nb,b.obj,cat,null,abc,p\n"), base) {
+    match Manifest::parse(
+        &format!("{HEADER}a,a.obj,cat,null,0,p\nb,b.obj,cat,null,abc,p\n"),
+        base,
+    ) {
         Err(ManifestError::BadRow { line, message }) => {
             assert_eq!(line, 3);
             assert!(message.contains("abc"), "{message}");
@@ -202,11 +247,21 @@ fn manifest_errors_are_typed() {
         Err(ManifestError::BadRow { line: 2, message }) => assert!(message.contains("class")),
         other => panic!("expected BadRow (empty class), got {other:?}"),
     }
-    match Manifest::parse(&format!("{HEADER}a,a.obj,cat,null,0,p\na,b.obj,cat,null,0,p\n"), base) {
-        Err(ManifestError::DuplicateId { id, line: 3, first: 2 }) => assert_eq!(id, "a"),
+    match Manifest::parse(
+        &format!("{HEADER}a,a.obj,cat,null,0,p\na,b.obj,cat,null,0,p\n"),
+        base,
+    ) {
+        Err(ManifestError::DuplicateId {
+            id,
+            line: 3,
+            first: 2,
+        }) => assert_eq!(id, "a"),
         other => panic!("expected DuplicateId, got {other:?}"),
     }
-    assert!(matches!(Manifest::parse(HEADER, base), Err(ManifestError::Empty)));
+    assert!(matches!(
+        Manifest::parse(HEADER, base),
+        Err(ManifestError::Empty)
+    ));
     assert!(matches!(
         Manifest::read(Path::new("/nonexistent/manifest.csv")),
         Err(ManifestError::Io { .. })
@@ -250,14 +305,18 @@ fn reference_markdown_and_json() {
     let r = Reference::from_markdown(md);
     let g = |c: &str, t: &str| r.get_map(c, t).unwrap();
     assert!(close(g("Heat-L2-L1-Single[t=0.1]", "null"), 0.8925));
-    assert!(close(g("Heat-L2-nL1-Single[t=0.1]", "isometry+topology"), 0.5949));
+    assert!(close(
+        g("Heat-L2-nL1-Single[t=0.1]", "isometry+topology"),
+        0.5949
+    ));
     assert!(close(g("Heat-L2-nL1-Single[t=0.1]", "scale"), 0.8875));
     assert!(close(g("CT-L2-nL1", "scale"), 0.8403));
     assert!(close(g("Heat-L2-nL1-Single[t=0.016]", "noise"), 0.8156));
     assert!(close(g("Heat-L2-nL1-Sum2[t=0.016..0.1]", "noise"), 0.8632));
     assert!(close(g("Heat-L2-nL1-Max", "noise"), 0.7211));
     assert!(close(r.auc["CT-L2-nL1"][ALL], 0.8733));
-    let j = r#"{"_meta": {"auc_by_transform": {"A": {"All": 0.9}}}, "A": {"null": 0.5, "All": 0.75}}"#;
+    let j =
+        r#"{"_meta": {"auc_by_transform": {"A": {"All": 0.9}}}, "A": {"null": 0.5, "All": 0.75}}"#;
     let r = Reference::from_json(j).unwrap();
     assert!(close(r.get_map("A", ALL).unwrap(), 0.75));
     assert!(r.get_map("_meta", ALL).is_none());
@@ -273,9 +332,18 @@ fn reference_files_of_the_bench_parse_when_present() {
     }
     let r = Reference::load(&bench.join("REFERENCE.md")).unwrap();
     // Table 2, H-L2 Sum²(t≤0.1), All: 83.59; Table 1 chi2 Null: 88.95; Table 3 t=1.5625 Scale: 73.45.
-    assert!(close(r.get_map("Heat-L2-nL1-Sum2[t=0.016..0.1]", ALL).unwrap(), 0.8359));
-    assert!(close(r.get_map("Heat-L2-chi2-Single[t=0.1]", "null").unwrap(), 0.8895));
-    assert!(close(r.get_map("Heat-L2-nL1-Single[t=1.5625]", "scale").unwrap(), 0.7345));
+    assert!(close(
+        r.get_map("Heat-L2-nL1-Sum2[t=0.016..0.1]", ALL).unwrap(),
+        0.8359
+    ));
+    assert!(close(
+        r.get_map("Heat-L2-chi2-Single[t=0.1]", "null").unwrap(),
+        0.8895
+    ));
+    assert!(close(
+        r.get_map("Heat-L2-nL1-Single[t=1.5625]", "scale").unwrap(),
+        0.7345
+    ));
     assert!(close(r.get_map("D2-nL1", "topology").unwrap(), 0.8029));
     let j = Reference::load(&bench.join("mini/reference-map.json")).unwrap();
     assert!(j.map.len() > 100);
@@ -298,7 +366,10 @@ fn configs_presets_files_and_unions() {
     let p = dir.path().join("c.json");
     std::fs::write(&p, serde_json::to_string(&vec![d.clone(), other]).unwrap()).unwrap();
     let cs = load_configs(Some(p.to_str().unwrap())).unwrap();
-    assert_eq!(cs.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["default", "other"]);
+    assert_eq!(
+        cs.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(),
+        ["default", "other"]
+    );
     // TOML: one config.
     let p = dir.path().join("c.toml");
     std::fs::write(&p, toml::to_string(&d).unwrap()).unwrap();
@@ -317,11 +388,17 @@ fn configs_presets_files_and_unions() {
     }
     // A renamed copy of a preset is recognised as that method (for reference look-ups), and a
     // changed query is not.
-    let base = all.iter().find(|c| c.name == "Heat-L2-nL1-Single[t=0.1]").expect("preset present");
+    let base = all
+        .iter()
+        .find(|c| c.name == "Heat-L2-nL1-Single[t=0.1]")
+        .expect("preset present");
     let mut renamed = base.clone();
     renamed.name = "renamed".into();
     let alias = shapeseek::eval::alias_of(&renamed).expect("alias found");
-    assert_eq!(all.iter().find(|c| c.name == alias).unwrap().query, base.query);
+    assert_eq!(
+        all.iter().find(|c| c.name == alias).unwrap().query,
+        base.query
+    );
     renamed.query.channels = vec!["no-such-channel".into()];
     assert_eq!(shapeseek::eval::alias_of(&renamed), None);
     for s in &specs {
@@ -376,7 +453,9 @@ fn generated_bench(dir: &Path) -> PathBuf {
     let mut rows = String::from(HEADER);
     let mut add = |id: &str, class: &str, transform: &str, strength: i32, m: &Mesh| {
         write_obj(&dir.join(format!("meshes/{id}.obj")), m);
-        rows.push_str(&format!("{id},meshes/{id}.obj,{class},{transform},{strength},{class}\n"));
+        rows.push_str(&format!(
+            "{id},meshes/{id}.obj,{class},{transform},{strength},{class}\n"
+        ));
     };
     for (class, base, fine, bend_amount) in [
         ("blob", &blob, &blob_fine, 0.35),
@@ -384,7 +463,13 @@ fn generated_bench(dir: &Path) -> PathBuf {
         ("rod", &rod, &rod_fine, 0.3),
     ] {
         add(&format!("{class}-null"), class, "null", 0, base);
-        add(&format!("{class}-iso1"), class, "isometry", 1, &bend(base, bend_amount));
+        add(
+            &format!("{class}-iso1"),
+            class,
+            "isometry",
+            1,
+            &bend(base, bend_amount),
+        );
         let mut big = base.clone();
         big.scale(1.7);
         add(&format!("{class}-scale1"), class, "scale", 1, &big);
@@ -413,7 +498,11 @@ fn end_to_end_on_generated_meshes_with_cache() {
     // Unreadable rows are reported and left out.
     let ids: Vec<&str> = first.failures.iter().map(|f| f.id.as_str()).collect();
     assert_eq!(ids, ["broken", "missing"]);
-    assert_eq!(first.failures[0].code, "mesh.parse", "{:?}", first.failures[0]);
+    assert_eq!(
+        first.failures[0].code, "mesh.parse",
+        "{:?}",
+        first.failures[0]
+    );
     assert_eq!(first.failures[1].code, "io");
     let ev = first.result("default").unwrap();
     let all = ev.group(ALL).unwrap();
@@ -426,15 +515,29 @@ fn end_to_end_on_generated_meshes_with_cache() {
     assert!(ev.group("scale").unwrap().map.unwrap() >= 0.85);
 
     // JSON document: the keys other tools parse.
-    let doc: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(tmp.path().join("out/results.json")).unwrap()).unwrap();
+    let doc: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("out/results.json")).unwrap(),
+    )
+    .unwrap();
     let r0 = &doc["results"][0];
     assert_eq!(r0["config"], "default");
-    for k in [ALL, "null", "isometry", "scale", "triangulation", ALL_WO_SCALE] {
-        let v = r0["map"][k].as_f64().unwrap_or_else(|| panic!("map.{k} missing"));
+    for k in [
+        ALL,
+        "null",
+        "isometry",
+        "scale",
+        "triangulation",
+        ALL_WO_SCALE,
+    ] {
+        let v = r0["map"][k]
+            .as_f64()
+            .unwrap_or_else(|| panic!("map.{k} missing"));
         assert!((0.0..=1.0).contains(&v));
     }
-    assert!(r0["map"].get("noise").is_none(), "noise has no readable query");
+    assert!(
+        r0["map"].get("noise").is_none(),
+        "noise has no readable query"
+    );
     assert_eq!(doc["failures"].as_array().unwrap().len(), 2);
     assert!(doc["timings"]["total_s"].as_f64().unwrap() > 0.0);
     // Reports and curves.
@@ -447,11 +550,21 @@ fn end_to_end_on_generated_meshes_with_cache() {
     // Second run: everything from the cache, identical figures.
     let second = run_eval(&args).unwrap();
     // The only misses are the unparseable file's (signature, then analysis): it is never cached.
-    assert_eq!(second.cache.1, 2, "misses on a warm cache: {:?}", second.cache);
+    assert_eq!(
+        second.cache.1, 2,
+        "misses on a warm cache: {:?}",
+        second.cache
+    );
     assert!(second.cache.0 >= 12);
     assert_eq!(second.timings.eigen_s, 0.0);
     let ap1: Vec<Option<f64>> = ev.queries.iter().map(|q| q.ap).collect();
-    let ap2: Vec<Option<f64>> = second.result("default").unwrap().queries.iter().map(|q| q.ap).collect();
+    let ap2: Vec<Option<f64>> = second
+        .result("default")
+        .unwrap()
+        .queries
+        .iter()
+        .map(|q| q.ap)
+        .collect();
     assert_eq!(ap1, ap2);
 
     // A configuration needing a subset of the cached channels reuses the cached signatures.
@@ -469,7 +582,16 @@ fn end_to_end_on_generated_meshes_with_cache() {
     let subset = run_eval(&sub_args).unwrap();
     assert_eq!(subset.timings.signature_s, 0.0, "no signature recomputed");
     assert_eq!(subset.timings.eigen_s, 0.0);
-    assert!(subset.result("first-scale").unwrap().group(ALL).unwrap().map.unwrap() > 0.5);
+    assert!(
+        subset
+            .result("first-scale")
+            .unwrap()
+            .group(ALL)
+            .unwrap()
+            .map
+            .unwrap()
+            > 0.5
+    );
 
     // Corrupt every cache entry: recomputed, same figures.
     let mut corrupted = 0;
@@ -484,8 +606,18 @@ fn end_to_end_on_generated_meshes_with_cache() {
         }
     }
     let third = run_eval(&args).unwrap();
-    assert!(third.cache.2 >= 12, "corrupt entries detected: {:?} of {corrupted}", third.cache);
-    let ap3: Vec<Option<f64>> = third.result("default").unwrap().queries.iter().map(|q| q.ap).collect();
+    assert!(
+        third.cache.2 >= 12,
+        "corrupt entries detected: {:?} of {corrupted}",
+        third.cache
+    );
+    let ap3: Vec<Option<f64>> = third
+        .result("default")
+        .unwrap()
+        .queries
+        .iter()
+        .map(|q| q.ap)
+        .collect();
     assert_eq!(ap1, ap3);
 }
 
@@ -505,8 +637,14 @@ fn mini_bench_default_config_map_floor() {
     assert!(out.failures.is_empty(), "{:?}", out.failures);
     let ev = out.result("default").unwrap();
     let map = ev.group(ALL).unwrap().map.unwrap();
-    println!("mini, default config: mAP All = {:.4}\n{}", map, out.markdown);
-    assert!(map >= MINI_FLOOR, "mAP All {map} below the floor {MINI_FLOOR}");
+    println!(
+        "mini, default config: mAP All = {:.4}\n{}",
+        map, out.markdown
+    );
+    assert!(
+        map >= MINI_FLOOR,
+        "mAP All {map} below the floor {MINI_FLOOR}"
+    );
 }
 
 /// mAP floor (All) of the default configuration on bench/mini.

@@ -80,7 +80,10 @@ impl Cache {
             std::fs::create_dir_all(d.join("signature"))?;
             std::fs::create_dir_all(d.join("index"))?;
         }
-        Ok(Cache { dir, stats: CacheStats::default() })
+        Ok(Cache {
+            dir,
+            stats: CacheStats::default(),
+        })
     }
 
     /// The directory, when enabled.
@@ -89,7 +92,9 @@ impl Cache {
     }
 
     fn path(&self, kind: &str, key: &str) -> Option<PathBuf> {
-        self.dir.as_ref().map(|d| d.join(kind).join(format!("{key}.bin")))
+        self.dir
+            .as_ref()
+            .map(|d| d.join(kind).join(format!("{key}.bin")))
     }
 
     fn load(&self, kind: &str, key: &str, magic: &[u8; 8]) -> Option<Vec<u8>> {
@@ -114,7 +119,9 @@ impl Cache {
     }
 
     fn store(&self, kind: &str, key: &str, magic: &[u8; 8], payload: &[u8]) {
-        let Some(path) = self.path(kind, key) else { return };
+        let Some(path) = self.path(kind, key) else {
+            return;
+        };
         if write_atomic(&path, &wrap_envelope(payload, magic)).is_err() {
             self.stats.write_errors.fetch_add(1, Ordering::Relaxed);
         }
@@ -122,7 +129,8 @@ impl Cache {
 
     /// A cached analysis.
     pub fn load_analysis(&self, key: &str) -> Option<Analysis> {
-        self.load("analysis", key, MAGIC_ANALYSIS).and_then(|p| decode_analysis(&p))
+        self.load("analysis", key, MAGIC_ANALYSIS)
+            .and_then(|p| decode_analysis(&p))
     }
 
     /// Stores an analysis.
@@ -263,7 +271,11 @@ impl Rd<'_> {
     }
     fn f64s(&mut self, n: usize) -> Option<Vec<f64>> {
         let b = self.take(n.checked_mul(8)?)?;
-        Some(b.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect())
+        Some(
+            b.chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+                .collect(),
+        )
     }
 }
 
@@ -275,7 +287,10 @@ fn decode_analysis(p: &[u8]) -> Option<Analysis> {
     let coords = r.f64s(n.checked_mul(3)?)?;
     let vertices: Vec<[f64; 3]> = coords.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
     let fb = r.take(m.checked_mul(12)?)?;
-    let idx: Vec<u32> = fb.chunks_exact(4).map(|c| u32::from_le_bytes(c.try_into().unwrap())).collect();
+    let idx: Vec<u32> = fb
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
     let faces: Vec<[u32; 3]> = idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
     if faces.iter().any(|f| f.iter().any(|&i| i as usize >= n)) {
         return None;

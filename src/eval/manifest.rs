@@ -8,7 +8,14 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// The columns a manifest must have.
-pub const REQUIRED_COLUMNS: [&str; 6] = ["id", "path", "class", "transform", "strength", "source_pose"];
+pub const REQUIRED_COLUMNS: [&str; 6] = [
+    "id",
+    "path",
+    "class",
+    "transform",
+    "strength",
+    "source_pose",
+];
 
 /// One shape of the benchmark.
 #[derive(Debug, Clone, PartialEq)]
@@ -50,7 +57,9 @@ pub enum ManifestError {
         source: std::io::Error,
     },
     /// A required column is missing from the header.
-    #[error("manifest: missing column '{0}' (required: id,path,class,transform,strength,source_pose)")]
+    #[error(
+        "manifest: missing column '{0}' (required: id,path,class,transform,strength,source_pose)"
+    )]
     MissingColumn(String),
     /// A row is malformed.
     #[error("manifest line {line}: {message}")]
@@ -93,7 +102,13 @@ impl Manifest {
         })?;
         let base = path
             .parent()
-            .map(|p| if p.as_os_str().is_empty() { Path::new(".") } else { p })
+            .map(|p| {
+                if p.as_os_str().is_empty() {
+                    Path::new(".")
+                } else {
+                    p
+                }
+            })
             .unwrap_or(Path::new("."))
             .to_path_buf();
         Manifest::parse(&text, &base)
@@ -108,7 +123,10 @@ impl Manifest {
             .from_reader(text.as_bytes());
         let headers = rdr
             .headers()
-            .map_err(|e| ManifestError::BadRow { line: 1, message: e.to_string() })?
+            .map_err(|e| ManifestError::BadRow {
+                line: 1,
+                message: e.to_string(),
+            })?
             .clone();
         let mut col = [0usize; 6];
         for (slot, name) in col.iter_mut().zip(REQUIRED_COLUMNS) {
@@ -138,9 +156,17 @@ impl Manifest {
             let get = |i: usize| rec.get(col[i]).unwrap_or("").to_string();
             let (id, p, class, transform, strength, source_pose) =
                 (get(0), get(1), get(2), get(3), get(4), get(5));
-            for (name, v) in [("id", &id), ("path", &p), ("class", &class), ("transform", &transform)] {
+            for (name, v) in [
+                ("id", &id),
+                ("path", &p),
+                ("class", &class),
+                ("transform", &transform),
+            ] {
                 if v.is_empty() {
-                    return Err(ManifestError::BadRow { line, message: format!("empty '{name}'") });
+                    return Err(ManifestError::BadRow {
+                        line,
+                        message: format!("empty '{name}'"),
+                    });
                 }
             }
             let strength = if strength.is_empty() {
@@ -155,13 +181,28 @@ impl Manifest {
                 return Err(ManifestError::DuplicateId { id, line, first });
             }
             seen.insert(id.clone(), line);
-            let resolved = if Path::new(&p).is_absolute() { PathBuf::from(&p) } else { base.join(&p) };
-            entries.push(Entry { id, path: p, resolved, class, transform, strength, source_pose });
+            let resolved = if Path::new(&p).is_absolute() {
+                PathBuf::from(&p)
+            } else {
+                base.join(&p)
+            };
+            entries.push(Entry {
+                id,
+                path: p,
+                resolved,
+                class,
+                transform,
+                strength,
+                source_pose,
+            });
         }
         if entries.is_empty() {
             return Err(ManifestError::Empty);
         }
-        Ok(Manifest { base: base.to_path_buf(), entries })
+        Ok(Manifest {
+            base: base.to_path_buf(),
+            entries,
+        })
     }
 
     /// Transformation names in order of first appearance.

@@ -132,7 +132,11 @@ pub fn roc_tpr_at(roc: &[(f64, f64)], fpr: f64) -> f64 {
     for w in roc.windows(2) {
         let (a, b) = (w[0], w[1]);
         if fpr >= a.0 && fpr <= b.0 {
-            let t = if b.0 > a.0 { a.1 + (b.1 - a.1) * (fpr - a.0) / (b.0 - a.0) } else { b.1 };
+            let t = if b.0 > a.0 {
+                a.1 + (b.1 - a.1) * (fpr - a.0) / (b.0 - a.0)
+            } else {
+                b.1
+            };
             best = best.max(t);
         }
     }
@@ -141,7 +145,10 @@ pub fn roc_tpr_at(roc: &[(f64, f64)], fpr: f64) -> f64 {
 
 /// Interpolated precision at recall `r`: the best precision at any recall ≥ r.
 pub fn pr_precision_at(pr: &[(f64, f64)], r: f64) -> f64 {
-    pr.iter().filter(|p| p.0 >= r - 1e-12).map(|p| p.1).fold(0.0, f64::max)
+    pr.iter()
+        .filter(|p| p.0 >= r - 1e-12)
+        .map(|p| p.1)
+        .fold(0.0, f64::max)
 }
 
 /// What one query scored.
@@ -205,8 +212,15 @@ pub fn evaluate_query(
     candidates: Option<&[bool]>,
 ) -> QueryResult {
     let order = rank(distances, query, candidates);
-    let rel: Vec<bool> = order.iter().map(|&j| classes[j] == classes[query]).collect();
-    let pairs: Vec<(f64, bool)> = order.iter().zip(&rel).map(|(&j, &r)| (distances[j], r)).collect();
+    let rel: Vec<bool> = order
+        .iter()
+        .map(|&j| classes[j] == classes[query])
+        .collect();
+    let pairs: Vec<(f64, bool)> = order
+        .iter()
+        .zip(&rel)
+        .map(|(&j, &r)| (distances[j], r))
+        .collect();
     let roc = roc_curve(&pairs);
     let pr = pr_curve(&rel);
     QueryResult {
@@ -255,8 +269,14 @@ pub fn summarize(
 ) -> GroupSummary {
     let aps: Vec<f64> = members.iter().filter_map(|&q| results[q].ap).collect();
     let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
-    let aucs: Vec<f64> = members.iter().filter_map(|&q| results[q].roc.as_deref().map(auc)).collect();
-    let all_pairs: Vec<(f64, bool)> = members.iter().flat_map(|&q| pooled[q].iter().copied()).collect();
+    let aucs: Vec<f64> = members
+        .iter()
+        .filter_map(|&q| results[q].roc.as_deref().map(auc))
+        .collect();
+    let all_pairs: Vec<(f64, bool)> = members
+        .iter()
+        .flat_map(|&q| pooled[q].iter().copied())
+        .collect();
     let eer = roc_curve(&all_pairs).map(|r| eer(&r));
     let mean_grid = |pick: &dyn Fn(&QueryResult) -> Option<&Vec<f64>>| -> Vec<(f64, f64)> {
         let vs: Vec<&Vec<f64>> = members.iter().filter_map(|&q| pick(&results[q])).collect();
@@ -339,7 +359,12 @@ pub fn evaluate(
         }
     }
     let pos = |pred: &dyn Fn(usize) -> bool| -> Vec<usize> {
-        queries.iter().enumerate().filter(|(_, &q)| pred(q)).map(|(p, _)| p).collect()
+        queries
+            .iter()
+            .enumerate()
+            .filter(|(_, &q)| pred(q))
+            .map(|(p, _)| p)
+            .collect()
     };
     let mut specs: Vec<(String, Vec<usize>, bool)> = Vec::new();
     for t in &order {
@@ -347,10 +372,17 @@ pub fn evaluate(
     }
     specs.push((ALL.to_string(), pos(&|_| true), true));
     if order.iter().any(|t| t == "scale") {
-        specs.push((ALL_WO_SCALE.to_string(), pos(&|q| transforms[q] != "scale"), true));
+        specs.push((
+            ALL_WO_SCALE.to_string(),
+            pos(&|q| transforms[q] != "scale"),
+            true,
+        ));
     }
     let n_main = specs.len();
-    let mut keys: Vec<String> = queries.iter().map(|&q| format!("{}@{}", transforms[q], strengths[q])).collect();
+    let mut keys: Vec<String> = queries
+        .iter()
+        .map(|&q| format!("{}@{}", transforms[q], strengths[q]))
+        .collect();
     keys.sort();
     keys.dedup();
     for k in keys {
@@ -361,11 +393,17 @@ pub fn evaluate(
         use rayon::prelude::*;
         specs
             .par_iter()
-            .map(|(name, members, curves)| (name.clone(), summarize(&results, members, &pooled, *curves)))
+            .map(|(name, members, curves)| {
+                (name.clone(), summarize(&results, members, &pooled, *curves))
+            })
             .collect()
     };
     let mut it = summaries.into_iter();
     let groups: Vec<(String, GroupSummary)> = it.by_ref().take(n_main).collect();
     let per_strength: BTreeMap<String, GroupSummary> = it.collect();
-    Evaluation { groups, per_strength, queries: results }
+    Evaluation {
+        groups,
+        per_strength,
+        queries: results,
+    }
 }

@@ -79,7 +79,8 @@ pub struct EvalArgs {
     /// REFERENCE.md of the parent folder when it describes this manifest's split.
     #[arg(long)]
     pub reference: Option<PathBuf>,
-    /// Also print the per-strength mAP table to stdout.
+    /// Also print the per-strength mAP table of every configuration (the report has it for the
+    /// configurations of REFERENCE.md's per-strength table and `default`).
     #[arg(long)]
     pub per_strength: bool,
     /// No progress output.
@@ -182,7 +183,10 @@ pub struct EvalOutcome {
 impl EvalOutcome {
     /// The evaluation of the configuration `name`.
     pub fn result(&self, name: &str) -> Option<&Evaluation> {
-        self.results.iter().find(|r| r.name == name).map(|r| &r.eval)
+        self.results
+            .iter()
+            .find(|r| r.name == name)
+            .map(|r| &r.eval)
     }
 }
 
@@ -192,7 +196,10 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     let out = evaluate(args)?;
     print!("{}", out.markdown);
     if args.per_strength {
-        println!("\n## mAP per strength (%)\n\n{}", report::per_strength_table(&out.results));
+        println!(
+            "\n## mAP per strength (%)\n\n{}",
+            report::per_strength_table(&out.results)
+        );
     }
     Ok(())
 }
@@ -207,7 +214,9 @@ pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
         }
         v
     };
-    let Some(spec) = spec else { return Ok(presets()) };
+    let Some(spec) = spec else {
+        return Ok(presets());
+    };
     let path = Path::new(spec);
     if path.is_file() {
         let text = std::fs::read_to_string(path)?;
@@ -215,15 +224,21 @@ pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
         let v: Value = if is_toml {
             let t: toml::Value = toml::from_str(&text)
                 .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?;
-            serde_json::to_value(t).map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?
+            serde_json::to_value(t)
+                .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?
         } else {
-            serde_json::from_str(&text).map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?
+            serde_json::from_str(&text)
+                .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?
         };
         let items = match v {
             Value::Array(a) => a,
             Value::Object(ref o) if o.contains_key("configs") => match &o["configs"] {
                 Value::Array(a) => a.clone(),
-                _ => return Err(Error::InvalidArgument(format!("config {spec}: 'configs' must be a list"))),
+                _ => {
+                    return Err(Error::InvalidArgument(format!(
+                        "config {spec}: 'configs' must be a list"
+                    )))
+                }
             },
             other => vec![other],
         };
@@ -234,7 +249,9 @@ pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
             out.push(c);
         }
         if out.is_empty() {
-            return Err(Error::InvalidArgument(format!("config {spec}: no configuration")));
+            return Err(Error::InvalidArgument(format!(
+                "config {spec}: no configuration"
+            )));
         }
         return Ok(out);
     }
@@ -417,15 +434,22 @@ fn process_shape(
         Some(a) => a,
         None => {
             let t = Instant::now();
-            let hint = path.extension().and_then(|e| e.to_str()).and_then(Format::from_extension);
+            let hint = path
+                .extension()
+                .and_then(|e| e.to_str())
+                .and_then(Format::from_extension);
             let mesh = read_mesh(&bytes, hint, limits).map_err(fail)?;
             add(&clock.read, t.elapsed());
             let a = analyze(&mesh, opts).map_err(fail)?;
-            add(&clock.prepare, Duration::from_secs_f64(a.timings.prepare_ms * 1e-3));
+            add(
+                &clock.prepare,
+                Duration::from_secs_f64(a.timings.prepare_ms * 1e-3),
+            );
             add(
                 &clock.eigen,
                 Duration::from_secs_f64(
-                    (a.timings.laplacian_ms + a.timings.factorization_ms + a.timings.eigensolve_ms) * 1e-3,
+                    (a.timings.laplacian_ms + a.timings.factorization_ms + a.timings.eigensolve_ms)
+                        * 1e-3,
                 ),
             );
             let t = Instant::now();
@@ -443,11 +467,17 @@ fn process_shape(
                 let s = compute_signature(&analysis, spec).map_err(fail)?;
                 add(&clock.signature, t.elapsed());
                 let t = Instant::now();
-                cache.store_signature(&hash_parts(&[akey.as_bytes(), sk.as_bytes()]), &s.to_bytes());
+                cache.store_signature(
+                    &hash_parts(&[akey.as_bytes(), sk.as_bytes()]),
+                    &s.to_bytes(),
+                );
                 if cache.dir().is_some() {
                     let mut idx = index.take().unwrap_or_else(|| load_index(cache, &akey));
                     if !idx.iter().any(|e| &e.key == sk) {
-                        idx.push(IndexEntry { key: sk.clone(), spec: spec.clone() });
+                        idx.push(IndexEntry {
+                            key: sk.clone(),
+                            spec: spec.clone(),
+                        });
                     }
                     cache.store_index(&akey, &serde_json::to_vec(&idx).expect("index serialises"));
                     index = Some(idx);
@@ -468,18 +498,23 @@ struct IndexEntry {
 }
 
 fn load_index(cache: &Cache, akey: &str) -> Vec<IndexEntry> {
-    cache.load_index(akey).and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default()
+    cache
+        .load_index(akey)
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_default()
 }
 
 fn load_signature_checked(cache: &Cache, akey: &str, spec_key: &str) -> Option<Signature> {
     let key = hash_parts(&[akey.as_bytes(), spec_key.as_bytes()]);
-    cache.load_signature(&key).and_then(|b| match Signature::from_bytes(&b) {
-        Ok(s) if s.spec_key == spec_key => Some(s),
-        _ => {
-            cache.note_undecodable();
-            None
-        }
-    })
+    cache
+        .load_signature(&key)
+        .and_then(|b| match Signature::from_bytes(&b) {
+            Ok(s) if s.spec_key == spec_key => Some(s),
+            _ => {
+                cache.note_undecodable();
+                None
+            }
+        })
 }
 
 /// Does a signature computed for `big` hold every channel of `small`, computed the same way?
@@ -491,7 +526,10 @@ pub fn covers(big: &SignatureSpec, small: &SignatureSpec) -> bool {
     };
     base(big).is_some()
         && base(big) == base(small)
-        && small.channels.iter().all(|c| big.channels.iter().any(|x| x == c))
+        && small
+            .channels
+            .iter()
+            .all(|c| big.channels.iter().any(|x| x == c))
 }
 
 fn read_limited(path: &Path, limits: &ReadLimits) -> Result<Vec<u8>> {
@@ -508,7 +546,10 @@ fn read_limited(path: &Path, limits: &ReadLimits) -> Result<Vec<u8>> {
 
 /// Finds a reference file for the manifest (see [`EvalArgs::reference`]).
 pub fn find_reference(manifest_path: &Path) -> Option<PathBuf> {
-    let dir = manifest_path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let dir = manifest_path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
     for name in ["reference-map.json", "REFERENCE.md"] {
         let p = dir.join(name);
         if p.is_file() {
@@ -519,7 +560,8 @@ pub fn find_reference(manifest_path: &Path) -> Option<PathBuf> {
     let split = dir.file_name()?.to_str()?.to_string();
     let p = dir.parent()?.join("REFERENCE.md");
     let text = std::fs::read_to_string(&p).ok()?;
-    text.contains(&format!("`{split}/manifest.csv`")).then_some(p)
+    text.contains(&format!("`{split}/manifest.csv`"))
+        .then_some(p)
 }
 
 /// Runs the evaluation and writes `--json` / `--out` files; returns everything it computed.
@@ -539,9 +581,14 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     }
     let mut manifest = Manifest::read(&args.manifest)?;
     if !args.classes.is_empty() {
-        manifest.entries.retain(|e| args.classes.iter().any(|c| c == &e.class));
+        manifest
+            .entries
+            .retain(|e| args.classes.iter().any(|c| c == &e.class));
         if manifest.entries.is_empty() {
-            return Err(Error::InvalidArgument(format!("--classes {}: no manifest row", args.classes.join(","))));
+            return Err(Error::InvalidArgument(format!(
+                "--classes {}: no manifest row",
+                args.classes.join(",")
+            )));
         }
     }
     let rerank_stages: Vec<(String, crate::rerank::RerankStage)> = args
@@ -552,14 +599,22 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     let configs = load_configs(args.config.as_deref())?;
     let (specs, group_of) = union_specs(&configs);
     let spec_keys: Vec<String> = specs.iter().map(|s| s.key()).collect();
-    let cache_dir = if args.no_cache { None } else { Some(args.cache.clone().unwrap_or_else(cache::default_dir)) };
+    let cache_dir = if args.no_cache {
+        None
+    } else {
+        Some(args.cache.clone().unwrap_or_else(cache::default_dir))
+    };
     let cache = Cache::new(cache_dir)?;
     let mut opts = AnalyzeOptions::default();
     opts.eigen.k = args.k;
     opts.laplacian = match args.laplacian.as_str() {
         "cotangent" => crate::laplace::LaplacianKind::Cotangent,
         "intrinsic-delaunay" => crate::laplace::LaplacianKind::IntrinsicDelaunay,
-        o => return Err(Error::InvalidArgument(format!("--laplacian {o}: cotangent or intrinsic-delaunay"))),
+        o => {
+            return Err(Error::InvalidArgument(format!(
+                "--laplacian {o}: cotangent or intrinsic-delaunay"
+            )))
+        }
     };
     let opts_json = serde_json::to_vec(&opts).expect("options serialise");
     let limits = ReadLimits::default();
@@ -583,7 +638,30 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         .entries
         .par_iter()
         .map(|e| {
-            let r = process_shape(&e.resolved, &specs, &spec_keys, &opts, &opts_json, &limits, &cache, &clock);
+            // A panic in the library on one mesh is reported for that row like an error.
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                process_shape(
+                    &e.resolved,
+                    &specs,
+                    &spec_keys,
+                    &opts,
+                    &opts_json,
+                    &limits,
+                    &cache,
+                    &clock,
+                )
+            }))
+            .unwrap_or_else(|p| {
+                let msg = p
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| p.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".into());
+                Err((
+                    "internal.panic".to_string(),
+                    format!("panic while processing: {msg}"),
+                ))
+            });
             progress.tick(&e.id);
             r
         })
@@ -595,7 +673,12 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     let included: Vec<bool> = shape_results.iter().map(|r| r.is_ok()).collect();
     for (e, r) in manifest.entries.iter().zip(&shape_results) {
         if let Err((code, message)) = r {
-            failures.push(Failure { id: e.id.clone(), path: e.path.clone(), code: code.clone(), message: message.clone() });
+            failures.push(Failure {
+                id: e.id.clone(),
+                path: e.path.clone(),
+                code: code.clone(),
+                message: message.clone(),
+            });
         }
     }
     let ok: Vec<usize> = (0..n).filter(|&i| included[i]).collect();
@@ -615,16 +698,26 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         .iter()
         .enumerate()
         .map(|(g, spec)| {
-            let sigs: Vec<&Signature> = ok.iter().map(|&i| &shape_results[i].as_ref().unwrap()[g]).collect();
+            let sigs: Vec<&Signature> = ok
+                .iter()
+                .map(|&i| &shape_results[i].as_ref().unwrap()[g])
+                .collect();
             let cal = ranking::calibrate_with(
                 &sigs,
                 spec,
                 0,
-                &ranking::CalibrationOptions { percentile: args.window_percentile, ..Default::default() },
+                &ranking::CalibrationOptions {
+                    percentile: args.window_percentile,
+                    ..Default::default()
+                },
             );
             shape_results
                 .par_iter()
-                .map(|r| r.as_ref().ok().map(|s| ranking::prepare_for_ranking(&s[g], &cal)))
+                .map(|r| {
+                    r.as_ref()
+                        .ok()
+                        .map(|s| ranking::prepare_for_ranking(&s[g], &cal))
+                })
                 .collect()
         })
         .collect();
@@ -641,7 +734,9 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
                     let content = hash_parts(&[bytes]);
                     hash_parts(&[content.as_bytes(), &opts_json, ANALYSIS_VERSION.as_bytes()])
                 };
-                let pl = crate::rerank::eval::shape_payloads(&manifest, &included, &opts, &akey, &cache, ps);
+                let pl = crate::rerank::eval::shape_payloads(
+                    &manifest, &included, &opts, &akey, &cache, ps,
+                );
                 rerank_notes.push_str(&format!(
                     "- payload `{}` ({} samples, t = {:?}, {:?}, {:?}): {:.1} s for {} shapes (cached under `gw/`)\n",
                     key, ps.samples, ps.times, ps.metric, ps.time_rule, t.elapsed().as_secs_f64(), pl.iter().filter(|p| p.is_some()).count()
@@ -665,10 +760,16 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
             }
         })
         .collect();
-    let transforms: Vec<String> = manifest.entries.iter().map(|e| e.transform.clone()).collect();
+    let transforms: Vec<String> = manifest
+        .entries
+        .iter()
+        .map(|e| e.transform.clone())
+        .collect();
     let strengths: Vec<i64> = manifest.entries.iter().map(|e| e.strength).collect();
     let mut results = Vec::with_capacity(configs.len());
-    let mut channel_cache: Vec<ChannelMatrices> = (0..specs.len()).map(|_| ChannelMatrices::default()).collect();
+    let mut channel_cache: Vec<ChannelMatrices> = (0..specs.len())
+        .map(|_| ChannelMatrices::default())
+        .collect();
     let (mut scoring_s, mut metrics_s) = (0.0, 0.0);
     let mut solved_pairs = crate::rerank::eval::PairCache::new();
     let mut direct_fallbacks = 0usize;
@@ -687,7 +788,11 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         let t = Instant::now();
         let eval = metrics::evaluate(&dist, n, &classes, &transforms, &strengths, &included);
         metrics_s += t.elapsed().as_secs_f64();
-        results.push(ConfigResult { name: cfg.name.clone(), eval, alias: alias_of(cfg) });
+        results.push(ConfigResult {
+            name: cfg.name.clone(),
+            eval,
+            alias: alias_of(cfg),
+        });
         for (label, st) in &rerank_stages {
             let empty = Vec::new();
             let pl = st
@@ -696,9 +801,19 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
                 .map(|(_, p)| p)
                 .unwrap_or(&empty);
             let pl: &[Option<crate::rerank::GwPayload>] = if pl.is_empty() { &[] } else { pl };
-            let payloads: Vec<Option<crate::rerank::GwPayload>> =
-                if pl.is_empty() { vec![None; n] } else { pl.to_vec() };
-            let (d2, stats) = crate::rerank::eval::rerank_matrix(&dist, n, &included, &payloads, st, &mut solved_pairs);
+            let payloads: Vec<Option<crate::rerank::GwPayload>> = if pl.is_empty() {
+                vec![None; n]
+            } else {
+                pl.to_vec()
+            };
+            let (d2, stats) = crate::rerank::eval::rerank_matrix(
+                &dist,
+                n,
+                &included,
+                &payloads,
+                st,
+                &mut solved_pairs,
+            );
             let eval = metrics::evaluate(&d2, n, &classes, &transforms, &strengths, &included);
             let name = format!("{}+{}", cfg.name, label);
             rerank_notes.push_str(&format!(
@@ -706,9 +821,16 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
                 stats.pairs, stats.wall_s, stats.per_candidate_ms, stats.per_query_ms
             ));
             if !args.quiet {
-                eprintln!("eval: {name}: {} pairs, {:.1} s, {:.2} ms/solve, {:.1} ms/query", stats.pairs, stats.wall_s, stats.per_candidate_ms, stats.per_query_ms);
+                eprintln!(
+                    "eval: {name}: {} pairs, {:.1} s, {:.2} ms/solve, {:.1} ms/query",
+                    stats.pairs, stats.wall_s, stats.per_candidate_ms, stats.per_query_ms
+                );
             }
-            results.push(ConfigResult { name, eval, alias: None });
+            results.push(ConfigResult {
+                name,
+                eval,
+                alias: None,
+            });
         }
     }
     drop(channel_cache);
@@ -716,7 +838,10 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
 
     // Reports.
     let t_rep = Instant::now();
-    let reference_path = args.reference.clone().or_else(|| find_reference(&args.manifest));
+    let reference_path = args
+        .reference
+        .clone()
+        .or_else(|| find_reference(&args.manifest));
     let reference = match &reference_path {
         Some(p) => match Reference::load(p) {
             Ok(r) if !r.is_empty() => Some(r),
@@ -758,7 +883,16 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     }
     timings.report_s = t_rep.elapsed().as_secs_f64();
     timings.total_s = t_total.elapsed().as_secs_f64();
-    let mut markdown = markdown_report(args, &manifest, &results, &failures, &timings, cache_counts, reference.as_ref(), reference_path.as_deref());
+    let mut markdown = markdown_report(
+        args,
+        &manifest,
+        &results,
+        &failures,
+        &timings,
+        cache_counts,
+        reference.as_ref(),
+        reference_path.as_deref(),
+    );
     if !rerank_notes.is_empty() {
         markdown.push_str(&format!("\n## Re-ranking (q5)\n\n{rerank_notes}"));
     }
@@ -773,7 +907,12 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         "cache": {"dir": cache.dir().map(|d| d.display().to_string()), "hits": cache_counts.0, "misses": cache_counts.1, "corrupt": cache_counts.2, "write_errors": cache_counts.3},
         "reference": reference.as_ref().map(|r| r.source.clone()),
     });
-    let json_doc = report::json_document(&results, &failures, &serde_json::to_value(&timings).unwrap_or(Value::Null), extra);
+    let json_doc = report::json_document(
+        &results,
+        &failures,
+        &serde_json::to_value(&timings).unwrap_or(Value::Null),
+        extra,
+    );
     if let Some(p) = &args.json {
         if let Some(parent) = p.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent)?;
@@ -781,7 +920,15 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         let text = serde_json::to_string_pretty(&json_doc).expect("json");
         cache::write_atomic(p, text.as_bytes())?;
     }
-    Ok(EvalOutcome { manifest, results, failures, timings, cache: cache_counts, json: json_doc, markdown })
+    Ok(EvalOutcome {
+        manifest,
+        results,
+        failures,
+        timings,
+        cache: cache_counts,
+        json: json_doc,
+        markdown,
+    })
 }
 
 /// The name of a preset configuration that is the same method as `cfg` under another name:
@@ -797,10 +944,17 @@ pub fn alias_of(cfg: &Config) -> Option<String> {
             .collect();
         let mut base = c.signature.clone();
         base.channels.clear();
-        (serde_json::to_value(&c.query).ok(), serde_json::to_value(&chans).ok(), serde_json::to_value(&base).ok())
+        (
+            serde_json::to_value(&c.query).ok(),
+            serde_json::to_value(&chans).ok(),
+            serde_json::to_value(&base).ok(),
+        )
     };
     let me = method(cfg);
-    ranking::paper_configs().into_iter().find(|c| c.name != cfg.name && method(c) == me).map(|c| c.name)
+    ranking::paper_configs()
+        .into_iter()
+        .find(|c| c.name != cfg.name && method(c) == me)
+        .map(|c| c.name)
 }
 
 /// All-pairs per-channel dissimilarity matrices, computed once per (channel, dissimilarity) and
@@ -817,7 +971,12 @@ struct ChannelMatrices {
 }
 
 impl ChannelMatrices {
-    fn matrix(&mut self, prep: &[Option<Prepared>], name: &str, d: ranking::Dissimilarity) -> &Vec<f64> {
+    fn matrix(
+        &mut self,
+        prep: &[Option<Prepared>],
+        name: &str,
+        d: ranking::Dissimilarity,
+    ) -> &Vec<f64> {
         let key = (name.to_string(), format!("{d:?}"));
         self.mats.entry(key).or_insert_with(|| {
             let n = prep.len();
@@ -851,20 +1010,24 @@ impl ChannelMatrices {
         for nm in &names {
             self.matrix(prep, nm, q.dissimilarity);
         }
-        let mats: Vec<&Vec<f64>> =
-            names.iter().map(|nm| &self.mats[&(nm.clone(), format!("{:?}", q.dissimilarity))]).collect();
+        let mats: Vec<&Vec<f64>> = names
+            .iter()
+            .map(|nm| &self.mats[&(nm.clone(), format!("{:?}", q.dissimilarity))])
+            .collect();
         let n = prep.len();
         let mut out = vec![f64::NAN; n * n];
-        out.par_chunks_mut(n.max(1)).enumerate().for_each(|(i, row)| {
-            if prep[i].is_none() {
-                return;
-            }
-            for (j, x) in row.iter_mut().enumerate() {
-                if i != j && prep[j].is_some() {
-                    *x = q.aggregation.apply(mats.iter().map(|m| m[i * n + j]));
+        out.par_chunks_mut(n.max(1))
+            .enumerate()
+            .for_each(|(i, row)| {
+                if prep[i].is_none() {
+                    return;
                 }
-            }
-        });
+                for (j, x) in row.iter_mut().enumerate() {
+                    if i != j && prep[j].is_some() {
+                        *x = q.aggregation.apply(mats.iter().map(|m| m[i * n + j]));
+                    }
+                }
+            });
         // Check against the library's own score on a deterministic sample of pairs.
         let ok: Vec<usize> = (0..n).filter(|&i| prep[i].is_some()).collect();
         let m = ok.len();
@@ -875,7 +1038,9 @@ impl ChannelMatrices {
                 if i == j {
                     continue;
                 }
-                let (Some(a), Some(b)) = (&prep[i], &prep[j]) else { continue };
+                let (Some(a), Some(b)) = (&prep[i], &prep[j]) else {
+                    continue;
+                };
                 let direct = ranking::score(a, b, q);
                 let ours = out[i * n + j];
                 if !(direct == ours || (direct.is_nan() && ours.is_nan())) {
@@ -891,22 +1056,32 @@ impl ChannelMatrices {
 fn distance_matrix(prep: &[Option<Prepared>], q: &QuerySpec) -> Vec<f64> {
     let n = prep.len();
     let mut dist = vec![f64::NAN; n * n];
-    dist.par_chunks_mut(n.max(1)).enumerate().for_each(|(i, row)| {
-        if let Some(pi) = &prep[i] {
-            for (j, d) in row.iter_mut().enumerate() {
-                if i != j {
-                    if let Some(pj) = &prep[j] {
-                        *d = ranking::score(pi, pj, q);
+    dist.par_chunks_mut(n.max(1))
+        .enumerate()
+        .for_each(|(i, row)| {
+            if let Some(pi) = &prep[i] {
+                for (j, d) in row.iter_mut().enumerate() {
+                    if i != j {
+                        if let Some(pj) = &prep[j] {
+                            *d = ranking::score(pi, pj, q);
+                        }
                     }
                 }
             }
-        }
-    });
+        });
     dist
 }
 
 fn safe_file_name(s: &str) -> String {
-    s.chars().map(|c| if c.is_ascii_alphanumeric() || "-_.=".contains(c) { c } else { '_' }).collect()
+    s.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || "-_.=".contains(c) {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
 }
 
 fn write_curves(dir: &Path, results: &[ConfigResult]) -> Result<()> {
@@ -928,9 +1103,21 @@ fn write_curves(dir: &Path, results: &[ConfigResult]) -> Result<()> {
                 })
                 .collect()
         };
-        let roc = plot::line_chart(&format!("ROC — {}", r.name), "false positive rate", "true positive rate", &series(&|s| &s.mean_roc), true);
+        let roc = plot::line_chart(
+            &format!("ROC — {}", r.name),
+            "false positive rate",
+            "true positive rate",
+            &series(&|s| &s.mean_roc),
+            true,
+        );
         std::fs::write(curves.join(format!("{base}.roc.svg")), roc)?;
-        let pr = plot::line_chart(&format!("Precision–recall — {}", r.name), "recall", "precision", &series(&|s| &s.mean_pr), false);
+        let pr = plot::line_chart(
+            &format!("Precision–recall — {}", r.name),
+            "recall",
+            "precision",
+            &series(&|s| &s.mean_pr),
+            false,
+        );
         std::fs::write(curves.join(format!("{base}.pr.svg")), pr)?;
     }
     // All configurations on one chart, group All.
@@ -940,8 +1127,26 @@ fn write_curves(dir: &Path, results: &[ConfigResult]) -> Result<()> {
             .filter_map(|r| r.eval.group(metrics::ALL).map(|s| (r.name.clone(), pick(s).clone())))
             .collect()
     };
-    std::fs::write(dir.join("roc-all.svg"), plot::line_chart("Mean ROC, all queries", "false positive rate", "true positive rate", &all(&|s| &s.mean_roc), true))?;
-    std::fs::write(dir.join("pr-all.svg"), plot::line_chart("Mean precision–recall, all queries", "recall", "precision", &all(&|s| &s.mean_pr), false))?;
+    std::fs::write(
+        dir.join("roc-all.svg"),
+        plot::line_chart(
+            "Mean ROC, all queries",
+            "false positive rate",
+            "true positive rate",
+            &all(&|s| &s.mean_roc),
+            true,
+        ),
+    )?;
+    std::fs::write(
+        dir.join("pr-all.svg"),
+        plot::line_chart(
+            "Mean precision–recall, all queries",
+            "recall",
+            "precision",
+            &all(&|s| &s.mean_pr),
+            false,
+        ),
+    )?;
     Ok(())
 }
 
@@ -962,7 +1167,11 @@ fn markdown_report(
     let _ = writeln!(s, "# shapeseek eval — {}\n", args.manifest.display());
     let mut per_t = String::new();
     for tr in manifest.transforms() {
-        let c = manifest.entries.iter().filter(|e| e.transform == tr).count();
+        let c = manifest
+            .entries
+            .iter()
+            .filter(|e| e.transform == tr)
+            .count();
         let _ = write!(per_t, "{} {c}, ", report::group_label(&tr));
     }
     let _ = writeln!(
@@ -975,27 +1184,53 @@ fn markdown_report(
         args.k
     );
     if !failures.is_empty() {
-        let _ = writeln!(s, "## Left out of the ranking\n\n| id | path | code | message |\n|---|---|---|---|");
+        let _ = writeln!(
+            s,
+            "## Left out of the ranking\n\n| id | path | code | message |\n|---|---|---|---|"
+        );
         for f in failures {
-            let _ = writeln!(s, "| {} | {} | `{}` | {} |", f.id, f.path, f.code, f.message.replace('|', "\\|"));
+            let _ = writeln!(
+                s,
+                "| {} | {} | `{}` | {} |",
+                f.id,
+                f.path,
+                f.code,
+                f.message.replace('|', "\\|")
+            );
         }
         s.push('\n');
     }
-    let _ = writeln!(s, "## All configurations\n\n{}", report::summary_table(results, reference));
+    let _ = writeln!(
+        s,
+        "## All configurations\n\n{}",
+        report::summary_table(results, reference)
+    );
     if let (Some(_), Some(p)) = (reference, reference_path) {
         let _ = writeln!(s, "Reference figures from `{}`.\n", p.display());
     }
     s.push_str(&report::reference_shaped_tables(results, reference));
+    s.push_str(&report::roc_summary_table(results, reference));
+    let _ = writeln!(
+        s,
+        "## mAP per strength (%)\n\n{}",
+        report::per_strength_table(&report::per_strength_selection(results))
+    );
     let _ = writeln!(s, "## Time per stage\n");
     let _ = writeln!(s, "| stage | seconds |\n|---|---|");
     for (name, v) in [
         ("read (sum over shapes)", t.read_s),
         ("prepare (sum)", t.prepare_s),
-        ("eigen: Laplacian + factorisation + eigensolve (sum)", t.eigen_s),
+        (
+            "eigen: Laplacian + factorisation + eigensolve (sum)",
+            t.eigen_s,
+        ),
         ("signature (sum)", t.signature_s),
         ("cache I/O (sum)", t.cache_s),
         ("per-shape phase (wall)", t.per_shape_wall_s),
-        ("calibration + histograms (wall)", t.calibration_histograms_s),
+        (
+            "calibration + histograms (wall)",
+            t.calibration_histograms_s,
+        ),
         ("ranking + metrics, all configurations (wall)", t.ranking_s),
         ("  of which dissimilarity matrices", t.scoring_s),
         ("  of which AP / ROC / PR", t.metrics_s),

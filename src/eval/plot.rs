@@ -10,7 +10,10 @@ const PALETTE: [&str; 10] = [
 
 /// Escapes text for SVG/XML.
 pub fn xml_escape(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
 }
 
 /// An SVG chart of `series` (name, points in [0,1]²) with the given title and axis labels.
@@ -90,7 +93,11 @@ pub fn line_chart(
     }
     for (i, (name, pts)) in series.iter().enumerate() {
         let color = PALETTE[i % PALETTE.len()];
-        let dash = if i >= PALETTE.len() { r#" stroke-dasharray="6 3""# } else { "" };
+        let dash = if i >= PALETTE.len() {
+            r#" stroke-dasharray="6 3""#
+        } else {
+            ""
+        };
         let mut p = String::new();
         for &(x, y) in pts {
             if x.is_finite() && y.is_finite() {

@@ -23,9 +23,11 @@ pub struct ConfigResult {
 impl ConfigResult {
     /// The reference mAP of this configuration for `group` (by name, else by alias).
     pub fn reference_map(&self, reference: &Reference, group: &str) -> Option<f64> {
-        reference
-            .get_map(&self.name, group)
-            .or_else(|| self.alias.as_deref().and_then(|a| reference.get_map(a, group)))
+        reference.get_map(&self.name, group).or_else(|| {
+            self.alias
+                .as_deref()
+                .and_then(|a| reference.get_map(a, group))
+        })
     }
 }
 
@@ -62,8 +64,10 @@ fn json_table(v: &Value) -> Table {
     if let Some(o) = v.as_object() {
         for (cfg, row) in o {
             if let Some(r) = row.as_object() {
-                let m: BTreeMap<String, f64> =
-                    r.iter().filter_map(|(k, x)| x.as_f64().map(|f| (k.clone(), f))).collect();
+                let m: BTreeMap<String, f64> = r
+                    .iter()
+                    .filter_map(|(k, x)| x.as_f64().map(|f| (k.clone(), f)))
+                    .collect();
                 if !m.is_empty() {
                     out.insert(cfg.clone(), m);
                 }
@@ -113,8 +117,11 @@ impl Reference {
             if !l.starts_with('|') {
                 continue;
             }
-            let cells: Vec<String> =
-                l.trim_matches('|').split('|').map(|c| c.trim().replace("**", "")).collect();
+            let cells: Vec<String> = l
+                .trim_matches('|')
+                .split('|')
+                .map(|c| c.trim().replace("**", ""))
+                .collect();
             if cells.len() < 3 {
                 continue;
             }
@@ -147,15 +154,24 @@ impl Reference {
                 header = None;
                 continue;
             }
-            let cells: Vec<String> =
-                l.trim_matches('|').split('|').map(|c| c.trim().replace("**", "")).collect();
-            if cells.iter().all(|c| c.chars().all(|ch| ch == '-' || ch == ':')) {
+            let cells: Vec<String> = l
+                .trim_matches('|')
+                .split('|')
+                .map(|c| c.trim().replace("**", ""))
+                .collect();
+            if cells
+                .iter()
+                .all(|c| c.chars().all(|ch| ch == '-' || ch == ':'))
+            {
                 continue;
             }
             match &header {
                 None => {
                     header = (cells[0] == "Transform").then(|| {
-                        cells[1..].iter().map(|h| column_config(&section, h, labels)).collect()
+                        cells[1..]
+                            .iter()
+                            .map(|h| column_config(&section, h, labels))
+                            .collect()
                     });
                     if header.is_none() {
                         header = Some(Vec::new());
@@ -188,7 +204,10 @@ impl Reference {
 }
 
 fn norm_name(s: &str) -> String {
-    s.chars().filter(|c| !c.is_whitespace()).flat_map(|c| c.to_lowercase()).collect()
+    s.chars()
+        .filter(|c| !c.is_whitespace())
+        .flat_map(|c| c.to_lowercase())
+        .collect()
 }
 
 fn lookup(t: &Table, config: &str, group: &str) -> Option<f64> {
@@ -200,7 +219,11 @@ fn lookup(t: &Table, config: &str, group: &str) -> Option<f64> {
 }
 
 fn pct(s: &str) -> Option<f64> {
-    s.trim().trim_end_matches('%').parse::<f64>().ok().map(|v| v / 100.0)
+    s.trim()
+        .trim_end_matches('%')
+        .parse::<f64>()
+        .ok()
+        .map(|v| v / 100.0)
 }
 
 fn split_label(s: &str) -> Option<(String, String)> {
@@ -279,7 +302,10 @@ fn column_config(section: &str, h: &str, labels: &BTreeMap<String, String>) -> O
 /// The layout of the three REFERENCE tables: (title, [(column label, config name)]).
 pub fn reference_tables() -> Vec<(String, Vec<(String, String)>)> {
     let dis = ["L1", "L2", "nL1", "nL2", "KL", "Bhatt", "chi2", "EMD"];
-    let t1 = dis.iter().map(|d| (d.to_string(), format!("Heat-L2-{d}-Single[t=0.1]"))).collect();
+    let t1 = dis
+        .iter()
+        .map(|d| (d.to_string(), format!("Heat-L2-{d}-Single[t=0.1]")))
+        .collect();
     let t2 = [
         ("H-L2 (t=0.1)", "Heat-L2-nL1-Single[t=0.1]"),
         ("H-L2 Max(6 t)", "Heat-L2-nL1-Max"),
@@ -301,18 +327,25 @@ pub fn reference_tables() -> Vec<(String, Vec<(String, String)>)> {
         .collect();
     for (suffix, lab) in [("", "6 t"), (THREE, "t≤0.1")] {
         for (agg, alab) in [("Sum", "Sum"), ("Sum2", "Sum²"), ("Max", "Max")] {
-            t3.push((format!("{alab} ({lab})"), format!("Heat-L2-nL1-{agg}{suffix}")));
+            t3.push((
+                format!("{alab} ({lab})"),
+                format!("Heat-L2-nL1-{agg}{suffix}"),
+            ));
         }
     }
     vec![
-        ("Table 1 — Heat-L2-Dissimilarity-Single, t = 0.1".to_string(), t1),
+        (
+            "Table 1 — Heat-L2-Dissimilarity-Single, t = 0.1".to_string(),
+            t1,
+        ),
         ("Table 2 — Kernel-Norm-nL1 and baselines".to_string(), t2),
         ("Table 3 — H-L2-nL1-Aggregation".to_string(), t3),
     ]
 }
 
 fn f(x: Option<f64>) -> String {
-    x.map(|v| format!("{:.2}", 100.0 * v)).unwrap_or_else(|| "–".into())
+    x.map(|v| format!("{:.2}", 100.0 * v))
+        .unwrap_or_else(|| "–".into())
 }
 
 fn group_map(e: &Evaluation, get: impl Fn(&GroupSummary) -> Option<f64>) -> Map<String, Value> {
@@ -361,7 +394,10 @@ pub fn json_document(
 
 /// Group names in report order for the given results.
 fn groups_of(results: &[ConfigResult]) -> Vec<String> {
-    results.first().map(|r| r.eval.groups.iter().map(|g| g.0.clone()).collect()).unwrap_or_default()
+    results
+        .first()
+        .map(|r| r.eval.groups.iter().map(|g| g.0.clone()).collect())
+        .unwrap_or_default()
 }
 
 /// The summary table: one row per configuration, mAP (%) per group, AUC and EER of `All`.
@@ -372,7 +408,15 @@ pub fn summary_table(results: &[ConfigResult], reference: Option<&Reference>) ->
     for g in &groups {
         let _ = write!(s, " {} |", group_label(g));
     }
-    let _ = writeln!(s, " AUC All | EER All |{}", if reference.is_some() { " reference All |" } else { "" });
+    let _ = writeln!(
+        s,
+        " AUC All | EER All |{}",
+        if reference.is_some() {
+            " reference All |"
+        } else {
+            ""
+        }
+    );
     let _ = write!(s, "|---|");
     for _ in 0..groups.len() + 2 + reference.is_some() as usize {
         s.push_str("---|");
@@ -392,7 +436,12 @@ pub fn summary_table(results: &[ConfigResult], reference: Option<&Reference>) ->
             let _ = write!(s, " {} |", f(r.eval.group(g).and_then(|x| x.map)));
         }
         let all = r.eval.group(ALL);
-        let _ = write!(s, " {} | {} |", f(all.and_then(|x| x.auc)), f(all.and_then(|x| x.eer)));
+        let _ = write!(
+            s,
+            " {} | {} |",
+            f(all.and_then(|x| x.auc)),
+            f(all.and_then(|x| x.eer))
+        );
         if let Some(rf) = reference {
             let _ = write!(s, " {} |", f(r.reference_map(rf, ALL)));
         }
@@ -411,7 +460,10 @@ pub fn reference_shaped_tables(results: &[ConfigResult], reference: Option<&Refe
         let cols: Vec<(&String, &ConfigResult)> = cols
             .iter()
             .filter_map(|(lab, name)| {
-                results.iter().find(|r| norm_name(&r.name) == norm_name(name)).map(|r| (lab, r))
+                results
+                    .iter()
+                    .find(|r| norm_name(&r.name) == norm_name(name))
+                    .map(|r| (lab, r))
             })
             .collect();
         if cols.is_empty() {
@@ -452,9 +504,77 @@ pub fn reference_shaped_tables(results: &[ConfigResult], reference: Option<&Refe
     s
 }
 
+/// The ROC summary of the Table 2 configurations that were run (like REFERENCE.md's): mean
+/// per-query AUC and pooled EER of all queries, with the reference's side by side.
+pub fn roc_summary_table(results: &[ConfigResult], reference: Option<&Reference>) -> String {
+    let t2 = &reference_tables()[1].1;
+    let rows: Vec<(&String, &ConfigResult)> = t2
+        .iter()
+        .filter_map(|(lab, name)| results.iter().find(|r| &r.name == name).map(|r| (lab, r)))
+        .collect();
+    if rows.is_empty() {
+        return String::new();
+    }
+    let mut s = String::from(
+        "## ROC summary (Table 2 configurations, all queries)\n\nMean per-query ROC AUC (%) / equal error rate (%) of the pooled query-vs-others distances",
+    );
+    s.push_str(if reference.is_some() {
+        "; ours / reference.\n\n"
+    } else {
+        ".\n\n"
+    });
+    s.push_str("| config | AUC All | EER All |\n|---|---|---|\n");
+    for (lab, r) in rows {
+        let all = r.eval.group(ALL);
+        let cell = |ours: Option<f64>, table: Option<&Table>| match table
+            .and_then(|t| lookup(t, &r.name, ALL))
+        {
+            Some(v) => format!("{} / {:.2}", f(ours), 100.0 * v),
+            None => f(ours),
+        };
+        let _ = writeln!(
+            s,
+            "| {lab} (`{}`) | {} | {} |",
+            r.name,
+            cell(all.and_then(|a| a.auc), reference.map(|x| &x.auc)),
+            cell(all.and_then(|a| a.eer), reference.map(|x| &x.eer)),
+        );
+    }
+    s.push('\n');
+    s
+}
+
+/// The configurations of REFERENCE.md's per-strength table that were run, plus `default`; all
+/// configurations when none of them was.
+pub fn per_strength_selection(results: &[ConfigResult]) -> Vec<ConfigResult> {
+    const NAMES: [&str; 9] = [
+        "default",
+        "Heat-L2-nL1-Sum2[t=0.016..0.1]",
+        "Heat-L2-nL1-Single[t=0.016]",
+        "Heat-L2-nL1-Single[t=0.1]",
+        "CT-L2-nL1",
+        "ShapeDNA[50]-L2",
+        "CT-L2-L2",
+        "D2-nL1",
+        "Geo-nL1",
+    ];
+    let picked: Vec<ConfigResult> = NAMES
+        .iter()
+        .filter_map(|n| results.iter().find(|r| r.name == *n).cloned())
+        .collect();
+    if picked.is_empty() {
+        results.to_vec()
+    } else {
+        picked
+    }
+}
+
 /// Per-strength mAP table (rows `transform@strength`, columns configurations).
 pub fn per_strength_table(results: &[ConfigResult]) -> String {
-    let mut keys: Vec<&String> = results.iter().flat_map(|r| r.eval.per_strength.keys()).collect();
+    let mut keys: Vec<&String> = results
+        .iter()
+        .flat_map(|r| r.eval.per_strength.keys())
+        .collect();
     keys.sort();
     keys.dedup();
     let mut s = String::from("| transform@strength |");
@@ -469,7 +589,11 @@ pub fn per_strength_table(results: &[ConfigResult]) -> String {
     for k in keys {
         let _ = write!(s, "| {k} |");
         for r in results {
-            let _ = write!(s, " {} |", f(r.eval.per_strength.get(k).and_then(|x| x.map)));
+            let _ = write!(
+                s,
+                " {} |",
+                f(r.eval.per_strength.get(k).and_then(|x| x.map))
+            );
         }
         s.push('\n');
     }

@@ -14,7 +14,9 @@
 //! `K + first-stage position`. AP and per-query ROC only depend on each query's order, so they
 //! are exact; the pooled EER of such a run compares ranks, not distances.
 
-use super::{fuse, gw_score, GwPayload, PayloadSpec, RerankStage, SgwStage, Fusion, GwMetric, TimeRule};
+use super::{
+    fuse, gw_score, Fusion, GwMetric, GwPayload, PayloadSpec, RerankStage, SgwStage, TimeRule,
+};
 use crate::eval::cache::{hash_parts, unwrap_envelope, wrap_envelope, write_atomic, Cache};
 use crate::eval::manifest::Manifest;
 use crate::eval::metrics;
@@ -44,17 +46,27 @@ pub fn parse_stage(s: &str) -> Result<RerankStage> {
     }
     let mut parts = t.split(':');
     if parts.next() != Some("sgw") {
-        return Err(bad("expected none, a JSON stage, or sgw:K[:key=value]...".into()));
+        return Err(bad(
+            "expected none, a JSON stage, or sgw:K[:key=value]...".into()
+        ));
     }
     let k: usize = parts
         .next()
         .ok_or_else(|| bad("missing K".into()))?
         .parse()
         .map_err(|_| bad("K must be an integer".into()))?;
-    let mut st = SgwStage { shortlist: k, ..SgwStage::default() };
+    let mut st = SgwStage {
+        shortlist: k,
+        ..SgwStage::default()
+    };
     for kv in parts {
-        let (key, val) = kv.split_once('=').ok_or_else(|| bad(format!("'{kv}' is not key=value")))?;
-        let num = |v: &str| v.parse::<f64>().map_err(|_| bad(format!("{key}: not a number")));
+        let (key, val) = kv
+            .split_once('=')
+            .ok_or_else(|| bad(format!("'{kv}' is not key=value")))?;
+        let num = |v: &str| {
+            v.parse::<f64>()
+                .map_err(|_| bad(format!("{key}: not a number")))
+        };
         match key {
             "m" => st.payload.samples = num(val)? as usize,
             "t" => st.payload.times = val.split(',').map(num).collect::<Result<Vec<_>>>()?,
@@ -122,7 +134,11 @@ pub fn shape_payloads(
             let analysis = match cache.load_analysis(&akey) {
                 Some(a) => a,
                 None => {
-                    let hint = e.resolved.extension().and_then(|x| x.to_str()).and_then(Format::from_extension);
+                    let hint = e
+                        .resolved
+                        .extension()
+                        .and_then(|x| x.to_str())
+                        .and_then(Format::from_extension);
                     let mesh = read_mesh(&bytes, hint, &ReadLimits::default()).ok()?;
                     analyze(&mesh, opts).ok()?
                 }
@@ -189,7 +205,11 @@ pub fn rerank_matrix(
         serde_json::to_string(&s.gw).unwrap_or_default()
     );
     let known = solved_pairs.entry(ckey.clone()).or_default();
-    let todo: Vec<(usize, usize)> = pairs.iter().copied().filter(|p| !known.contains_key(p)).collect();
+    let todo: Vec<(usize, usize)> = pairs
+        .iter()
+        .copied()
+        .filter(|p| !known.contains_key(p))
+        .collect();
     let t0 = Instant::now();
     let solved: Vec<(f64, f64)> = todo
         .par_iter()
@@ -223,25 +243,41 @@ pub fn rerank_matrix(
     }
     // Wall latency of the public entry point on a few queries.
     let mut lat = Vec::new();
-    for (qi, &q) in queries.iter().enumerate().take(if todo.is_empty() { 0 } else { 8 }) {
+    for (qi, &q) in queries
+        .iter()
+        .enumerate()
+        .take(if todo.is_empty() { 0 } else { 8 })
+    {
         let Some(qp) = &payloads[q] else { continue };
         let cands: Vec<super::Candidate<'_, usize>> = orders[qi]
             .iter()
             .take(k)
-            .map(|&j| super::Candidate { id: j, score: dist[q * n + j], payload: payloads[j].as_ref() })
+            .map(|&j| super::Candidate {
+                id: j,
+                score: dist[q * n + j],
+                payload: payloads[j].as_ref(),
+            })
             .collect();
         let t = Instant::now();
         let r = super::apply(stage, qp, &cands);
         lat.push(t.elapsed().as_secs_f64());
         debug_assert_eq!(r.len(), cands.len());
     }
-    let per_query_ms = if lat.is_empty() { 0.0 } else { 1e3 * lat.iter().sum::<f64>() / lat.len() as f64 };
+    let per_query_ms = if lat.is_empty() {
+        0.0
+    } else {
+        1e3 * lat.iter().sum::<f64>() / lat.len() as f64
+    };
     (
         out,
         RerankStats {
             pairs: todo.len(),
             wall_s,
-            per_candidate_ms: if todo.is_empty() { 0.0 } else { 1e3 * cpu / todo.len() as f64 },
+            per_candidate_ms: if todo.is_empty() {
+                0.0
+            } else {
+                1e3 * cpu / todo.len() as f64
+            },
             per_query_ms,
         },
     )

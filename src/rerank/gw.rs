@@ -183,7 +183,10 @@ fn sinkhorn(
             let s = dot(kernel.col_as_slice(j), &u);
             v[j] = q[j] / s.max(1e-300);
         }
-        let blown = u.iter().chain(v.iter()).any(|&x| !(1.0 / BOUND..=BOUND).contains(&x));
+        let blown = u
+            .iter()
+            .chain(v.iter())
+            .any(|&x| !(1.0 / BOUND..=BOUND).contains(&x));
         if blown {
             // Absorb the scalings into the potentials and rebuild the kernel.
             for i in 0..m {

@@ -159,7 +159,11 @@ pub fn gw_score(a: &GwPayload, b: &GwPayload, opts: &GwOptions) -> f64 {
     if a.spec_key != b.spec_key || a.upper.len() != b.upper.len() || a.upper.is_empty() {
         return f64::INFINITY;
     }
-    let (x, y) = if canonical(a, b) == Ordering::Greater { (b, a) } else { (a, b) };
+    let (x, y) = if canonical(a, b) == Ordering::Greater {
+        (b, a)
+    } else {
+        (a, b)
+    };
     let cx = x.matrices();
     let cy = y.matrices();
     let rx: Vec<_> = cx.iter().map(|m| m.as_ref()).collect();

@@ -183,7 +183,9 @@ impl GwPayload {
         }
         if r.pos != b.len()
             || weights.len() != samples
-            || upper.iter().any(|u| u.len() != samples * samples.saturating_sub(1) / 2)
+            || upper
+                .iter()
+                .any(|u| u.len() != samples * samples.saturating_sub(1) / 2)
             || diagonal.iter().any(|d| d.len() != samples)
         {
             return Err(bad());
@@ -217,15 +219,23 @@ impl<'a> Reader<'a> {
         Ok(s)
     }
     fn u64(&mut self) -> Result<u64> {
-        Ok(u64::from_le_bytes(self.take(8)?.try_into().map_err(|_| bad())?))
+        Ok(u64::from_le_bytes(
+            self.take(8)?.try_into().map_err(|_| bad())?,
+        ))
     }
     fn f64s(&mut self, n: usize) -> Result<Vec<f64>> {
         let raw = self.take(n.checked_mul(8).ok_or_else(bad)?)?;
-        Ok(raw.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect())
+        Ok(raw
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+            .collect())
     }
     fn f32s(&mut self, n: usize) -> Result<Vec<f32>> {
         let raw = self.take(n.checked_mul(4).ok_or_else(bad)?)?;
-        Ok(raw.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect())
+        Ok(raw
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect())
     }
 }
 
@@ -235,16 +245,22 @@ impl<'a> Reader<'a> {
 /// zero samples, or a spectrum without a non-zero eigenvalue.
 pub fn compute_payload(analysis: &Analysis, spec: &PayloadSpec) -> Result<GwPayload> {
     if spec.samples == 0 || spec.times.is_empty() {
-        return Err(Error::InvalidArgument("gw payload: need ≥ 1 sample and ≥ 1 time".into()));
+        return Err(Error::InvalidArgument(
+            "gw payload: need ≥ 1 sample and ≥ 1 time".into(),
+        ));
     }
     if spec.times.iter().any(|t| !(t.is_finite() && *t > 0.0)) {
-        return Err(Error::InvalidArgument("gw payload: times must be positive and finite".into()));
+        return Err(Error::InvalidArgument(
+            "gw payload: times must be positive and finite".into(),
+        ));
     }
     let mesh = &analysis.mesh;
     let sp = &analysis.spectrum;
     let n = mesh.vertices.len();
     if n == 0 || sp.eigenvectors.nrows() != n || sp.mass.len() != n {
-        return Err(Error::InvalidArgument("gw payload: spectrum does not match the mesh".into()));
+        return Err(Error::InvalidArgument(
+            "gw payload: spectrum does not match the mesh".into(),
+        ));
     }
     let area: f64 = sp.mass.iter().sum();
     let zero_tol = ZERO_MODE_TOLERANCE * 4.0 * std::f64::consts::PI / area;
@@ -291,10 +307,23 @@ pub fn compute_payload(analysis: &Analysis, spec: &PayloadSpec) -> Result<GwPayl
             })
             .collect();
         // Gram: G = Φ_S diag(K^a) Φ_Sᵀ with a = 2 for distances (|ψ|² terms), 1 for the kernel.
-        let pw = if spec.metric == GwMetric::HeatKernel { 0.5 } else { 1.0 };
-        let psi = Mat::from_fn(m, k, |r, c| sp.eigenvectors[(pts[r] as usize, c)] * kw[c].powf(pw));
+        let pw = if spec.metric == GwMetric::HeatKernel {
+            0.5
+        } else {
+            1.0
+        };
+        let psi = Mat::from_fn(m, k, |r, c| {
+            sp.eigenvectors[(pts[r] as usize, c)] * kw[c].powf(pw)
+        });
         let mut gram = Mat::<f64>::zeros(m, m);
-        matmul(gram.as_mut(), Accum::Replace, psi.as_ref(), psi.as_ref().transpose(), 1.0, Par::Seq);
+        matmul(
+            gram.as_mut(),
+            Accum::Replace,
+            psi.as_ref(),
+            psi.as_ref().transpose(),
+            1.0,
+            Par::Seq,
+        );
         let mut up = Vec::with_capacity(m * m.saturating_sub(1) / 2);
         let mut dg = Vec::with_capacity(m);
         for i in 0..m {
@@ -304,7 +333,9 @@ pub fn compute_payload(analysis: &Analysis, spec: &PayloadSpec) -> Result<GwPayl
             }
             for j in i + 1..m {
                 let v = match spec.metric {
-                    GwMetric::Diffusion => (gram[(i, i)] + gram[(j, j)] - 2.0 * gram[(i, j)]).max(0.0).sqrt(),
+                    GwMetric::Diffusion => (gram[(i, i)] + gram[(j, j)] - 2.0 * gram[(i, j)])
+                        .max(0.0)
+                        .sqrt(),
                     GwMetric::HeatKernel => gram[(i, j)],
                 };
                 up.push(v as f32);

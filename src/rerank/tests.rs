@@ -32,7 +32,10 @@ fn random_space(m: usize, h: f64, seed: u64) -> (Mat<f64>, Vec<f64>) {
 
 /// Sharp regularisation for the metric-space tests (ε = 0.003 × mean product cost).
 fn sharp() -> GwOptions {
-    GwOptions { eps_rel: 0.003, ..GwOptions::default() }
+    GwOptions {
+        eps_rel: 0.003,
+        ..GwOptions::default()
+    }
 }
 
 fn gw(c1: &Mat<f64>, p: &[f64], c2: &Mat<f64>, q: &[f64]) -> f64 {
@@ -59,12 +62,21 @@ fn gw_of_a_space_with_itself_is_minimal_and_gw_is_symmetric() {
             }
         }
     }
-    assert!(xx < 0.02 * prod, "GW(X,X) = {xx}, product-measure energy {prod}");
-    assert!(xx < xy && xx < xz, "GW(X,X) = {xx}, GW(X,Y) = {xy}, GW(X,Z) = {xz}");
+    assert!(
+        xx < 0.02 * prod,
+        "GW(X,X) = {xx}, product-measure energy {prod}"
+    );
+    assert!(
+        xx < xy && xx < xz,
+        "GW(X,X) = {xx}, GW(X,Y) = {xy}, GW(X,Z) = {xz}"
+    );
     // Two draws from the same distribution are closer than a flat box.
     assert!(xy < xz, "GW(X,Y) = {xy} vs GW(X,Z) = {xz}");
     // The solver in either order: equal to a relative 1e-3.
-    assert!((xy - yx).abs() <= 1e-3 * xy, "GW(X,Y) = {xy}, GW(Y,X) = {yx}");
+    assert!(
+        (xy - yx).abs() <= 1e-3 * xy,
+        "GW(X,Y) = {xy}, GW(Y,X) = {yx}"
+    );
     // The transport plan of X with itself concentrates on the diagonal.
     let res = entropic_gw(&[x.as_ref()], &p, &[x.as_ref()], &p, &sharp());
     let diag: f64 = (0..60).map(|i| res.plan[(i, i)]).sum();
@@ -174,8 +186,14 @@ fn payload_round_trip_and_malformed_input() {
     assert_eq!(eval::parse_stage("sgw:20").unwrap(), st);
     match eval::parse_stage("sgw:50:m=150:t=0.04:eps=0.01:blend=0.5").unwrap() {
         RerankStage::SpectralGw(s) => {
-            assert_eq!((s.shortlist, s.payload.samples, s.payload.times.clone()), (50, 150, vec![0.04]));
-            assert_eq!((s.gw.eps_rel, s.fusion), (0.01, Fusion::RankBlend { weight: 0.5 }));
+            assert_eq!(
+                (s.shortlist, s.payload.samples, s.payload.times.clone()),
+                (50, 150, vec![0.04])
+            );
+            assert_eq!(
+                (s.gw.eps_rel, s.fusion),
+                (0.01, Fusion::RankBlend { weight: 0.5 })
+            );
         }
         other => panic!("{other:?}"),
     }
@@ -191,12 +209,32 @@ fn rerank_reorders_a_shortlist_deterministically() {
     let far2 = payload_of(&generate::rectangle(2.0, 1.0, 30, 15), &spec);
     // First stage put the true match last.
     let cands = vec![
-        Candidate { id: "sphere", score: 0.1, payload: Some(&far1) },
-        Candidate { id: "plate", score: 0.2, payload: Some(&far2) },
-        Candidate { id: "none", score: 0.25, payload: None },
-        Candidate { id: "torus", score: 0.3, payload: Some(&near) },
+        Candidate {
+            id: "sphere",
+            score: 0.1,
+            payload: Some(&far1),
+        },
+        Candidate {
+            id: "plate",
+            score: 0.2,
+            payload: Some(&far2),
+        },
+        Candidate {
+            id: "none",
+            score: 0.25,
+            payload: None,
+        },
+        Candidate {
+            id: "torus",
+            score: 0.3,
+            payload: Some(&near),
+        },
     ];
-    let stage = RerankStage::SpectralGw(SgwStage { shortlist: 4, payload: spec, ..SgwStage::default() });
+    let stage = RerankStage::SpectralGw(SgwStage {
+        shortlist: 4,
+        payload: spec,
+        ..SgwStage::default()
+    });
     let a = apply(&stage, &q, &cands);
     let b = apply(&stage, &q, &cands);
     assert_eq!(a, b);
@@ -205,7 +243,10 @@ fn rerank_reorders_a_shortlist_deterministically() {
     assert!(a.windows(2).all(|w| w[0].1 <= w[1].1));
     // `None` keeps the first-stage order and scores.
     let keep = apply(&RerankStage::None, &q, &cands);
-    assert_eq!(keep.iter().map(|x| x.0).collect::<Vec<_>>(), ["sphere", "plate", "none", "torus"]);
+    assert_eq!(
+        keep.iter().map(|x| x.0).collect::<Vec<_>>(),
+        ["sphere", "plate", "none", "torus"]
+    );
     // Rank blend with weight 1 is the first-stage order.
     let blend = RerankStage::SpectralGw(SgwStage {
         shortlist: 4,
@@ -214,7 +255,10 @@ fn rerank_reorders_a_shortlist_deterministically() {
         ..SgwStage::default()
     });
     let c = apply(&blend, &q, &cands);
-    assert_eq!(c.iter().map(|x| x.0).collect::<Vec<_>>(), ["sphere", "plate", "torus", "none"]);
+    assert_eq!(
+        c.iter().map(|x| x.0).collect::<Vec<_>>(),
+        ["sphere", "plate", "torus", "none"]
+    );
 }
 
 /// Cost per candidate at 200 and 300 samples (`--ignored --nocapture`).
@@ -248,11 +292,18 @@ fn gw_diagnostics() {
     let (y, q) = random_space(50, 1.0, 2);
     for eps in [0.03, 0.01, 0.003, 0.001] {
         for outer in [5usize, 10, 30] {
-            let o = GwOptions { eps_rel: eps, outer_iterations: outer, ..GwOptions::default() };
+            let o = GwOptions {
+                eps_rel: eps,
+                outer_iterations: outer,
+                ..GwOptions::default()
+            };
             let r = entropic_gw(&[x.as_ref()], &p, &[x.as_ref()], &p, &o);
             let s = entropic_gw(&[x.as_ref()], &p, &[y.as_ref()], &q, &o);
             let diag: f64 = (0..60).map(|i| r.plan[(i, i)]).sum();
-            println!("eps {eps} outer {outer}: xx {:.5} diag {diag:.3} xy {:.5} its {} {}", r.value, s.value, r.outer_iterations, r.sinkhorn_iterations);
+            println!(
+                "eps {eps} outer {outer}: xx {:.5} diag {diag:.3} xy {:.5} its {} {}",
+                r.value, s.value, r.outer_iterations, r.sinkhorn_iterations
+            );
         }
     }
 }
@@ -282,9 +333,18 @@ fn search_latency_10k_with_rerank() {
         pays.push(compute_payload(&a, &spec).unwrap());
     }
     let cal = calibrate(&sigs.iter().collect::<Vec<_>>(), &cfg.signature, 1);
-    let prepared: Vec<_> = (0..10_000).map(|i| prepare_for_ranking(&sigs[i % 4], &cal)).collect();
-    let stage = RerankStage::SpectralGw(SgwStage { shortlist: 50, ..SgwStage::default() });
-    let stage = if std::env::var("SGW_K20").is_ok() { RerankStage::SpectralGw(SgwStage::default()) } else { stage };
+    let prepared: Vec<_> = (0..10_000)
+        .map(|i| prepare_for_ranking(&sigs[i % 4], &cal))
+        .collect();
+    let stage = RerankStage::SpectralGw(SgwStage {
+        shortlist: 50,
+        ..SgwStage::default()
+    });
+    let stage = if std::env::var("SGW_K20").is_ok() {
+        RerankStage::SpectralGw(SgwStage::default())
+    } else {
+        stage
+    };
     let mut scan = Vec::new();
     let mut rr = Vec::new();
     for q in 0..5 {
@@ -294,7 +354,11 @@ fn search_latency_10k_with_rerank() {
         let cands: Vec<Candidate<'_, usize>> = hits
             .iter()
             .take(stage.shortlist_len())
-            .map(|&(i, s)| Candidate { id: i, score: s, payload: Some(&pays[i % 4]) })
+            .map(|&(i, s)| Candidate {
+                id: i,
+                score: s,
+                payload: Some(&pays[i % 4]),
+            })
             .collect();
         let t = std::time::Instant::now();
         let out = apply(&stage, &pays[q % 4], &cands);

@@ -1,0 +1,420 @@
+//! The sled store: trees, records, atomic writes and the schema version.
+//!
+//! Trees (schema version 1, see `migrations/0001_initial.md`):
+//!
+//! | tree | key | value |
+//! | --- | --- | --- |
+//! | `meta` | `schema_version` | u32, big endian |
+//! | `meta` | `calibration` | JSON of the engine's calibration (with its epoch) |
+//! | `meta` | `default_query` | JSON of the default query spec |
+//! | `meta` | `spec_key` | the signature spec key the stored signatures were computed with |
+//! | `meta` | `created_at` | RFC 3339-ish UTC timestamp (informational) |
+//! | `shapes` | id | [`ShapeRecord`] as JSON |
+//! | `signatures` | id | engine signature bytes |
+//! | `meshes` | id | the original upload, byte for byte |
+//! | `by_hash` | SHA-256 of the upload (32 bytes) | id |
+//!
+//! Ids are 16 lower-case hex digits of a monotonic counter, so key order is ingest order.
+//! A shape is written by one sled transaction over the four data trees, then the database is
+//! flushed before the caller acknowledges it: after a crash a shape is wholly there or absent.
+
+use crate::mesh::prepare::PrepareReport;
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use sled::transaction::{ConflictableTransactionError, TransactionError, Transactional};
+use std::path::{Path, PathBuf};
+
+/// The on-disk schema version this build reads and writes.
+pub const SCHEMA_VERSION: u32 = 1;
+
+const KEY_SCHEMA: &[u8] = b"schema_version";
+const KEY_CALIBRATION: &[u8] = b"calibration";
+const KEY_DEFAULT_QUERY: &[u8] = b"default_query";
+const KEY_SPEC: &[u8] = b"spec_key";
+const KEY_CREATED: &[u8] = b"created_at";
+
+/// One stored shape (the `shapes` tree value).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ShapeRecord {
+    /// Id (16 hex digits).
+    pub id: String,
+    /// Display name.
+    pub name: String,
+    /// Free tags, used by filters.
+    pub tags: Vec<String>,
+    /// Source format name (`obj`, `glb`, ...).
+    pub format: String,
+    /// MIME type the original is served with.
+    pub content_type: String,
+    /// Size of the original upload in bytes.
+    pub bytes: u64,
+    /// Vertex count as read.
+    pub vertices: usize,
+    /// Face count as read (triangles).
+    pub faces: usize,
+    /// Surface area as read (before normalisation).
+    pub area: f64,
+    /// SHA-256 of the upload, hex.
+    pub sha256: String,
+    /// Unix time of ingest, milliseconds.
+    pub created_unix_ms: u64,
+    /// What preparation found and changed.
+    pub prepare: PrepareReport,
+    /// Signature spec key the stored signature was computed with.
+    pub spec_key: String,
+}
+
+/// Maps a sled error to the library error (storage failures are I/O failures).
+pub fn storage_err(e: impl std::fmt::Display) -> Error {
+    Error::Io(std::io::Error::other(format!("index storage: {e}")))
+}
+
+/// Opens the sled database at `path`, with a clear message when another process holds it.
+pub fn open_db(path: &Path) -> Result<sled::Db> {
+    sled::Config::new().path(path).open().map_err(|e| {
+        let msg = e.to_string();
+        if msg.contains("could not acquire lock") {
+            storage_err(format!(
+                "{} is in use by another process (a running `shapeseek serve`?): {msg}",
+                path.display()
+            ))
+        } else {
+            storage_err(format!("cannot open {}: {msg}", path.display()))
+        }
+    })
+}
+
+/// Reads the schema version stored in an open database (None: an empty, new database).
+pub fn read_schema_version(db: &sled::Db) -> Result<Option<u32>> {
+    let meta = db.open_tree("meta").map_err(storage_err)?;
+    match meta.get(KEY_SCHEMA).map_err(storage_err)? {
+        None => Ok(None),
+        Some(v) => {
+            let b: [u8; 4] = v.as_ref().try_into().map_err(|_| {
+                Error::InvalidArgument(format!(
+                    "index: schema_version has {} bytes, expected 4: not a shapeseek index",
+                    v.len()
+                ))
+            })?;
+            Ok(Some(u32::from_be_bytes(b)))
+        }
+    }
+}
+
+/// Outcome of an insert.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Inserted {
+    /// A new shape was written with this id.
+    New(String),
+    /// The same bytes were stored before under this id; nothing was written.
+    Existing(String),
+}
+
+/// The index store.
+#[derive(Clone)]
+pub struct Store {
+    db: sled::Db,
+    dir: PathBuf,
+    meta: sled::Tree,
+    shapes: sled::Tree,
+    signatures: sled::Tree,
+    meshes: sled::Tree,
+    by_hash: sled::Tree,
+}
+
+impl Store {
+    /// Opens (or creates) the store in `dir`. A new database is stamped with
+    /// [`SCHEMA_VERSION`]; an existing one must have exactly that version (older: run
+    /// `shapeseek migrate`; newer or unknown: refused).
+    pub fn open(dir: &Path) -> Result<Store> {
+        std::fs::create_dir_all(dir)?;
+        let db = open_db(&dir.join("db"))?;
+        match read_schema_version(&db)? {
+            Some(SCHEMA_VERSION) => {}
+            None => {
+                // A new index, unless data trees already have content (then it is not ours).
+                for t in ["shapes", "signatures", "meshes", "by_hash"] {
+                    let tree = db.open_tree(t).map_err(storage_err)?;
+                    if !tree.is_empty() {
+                        return Err(Error::InvalidArgument(format!(
+                            "index at {} has data but no schema_version: unknown format, refusing",
+                            dir.display()
+                        )));
+                    }
+                }
+                let meta = db.open_tree("meta").map_err(storage_err)?;
+                meta.insert(KEY_SCHEMA, &SCHEMA_VERSION.to_be_bytes())
+                    .map_err(storage_err)?;
+                meta.insert(KEY_CREATED, now_unix_ms().to_string().as_bytes())
+                    .map_err(storage_err)?;
+                db.flush().map_err(storage_err)?;
+            }
+            Some(v) if v < SCHEMA_VERSION => {
+                return Err(Error::InvalidArgument(format!(
+                    "index at {} has schema version {v}, this build uses {SCHEMA_VERSION}: \
+                     run `shapeseek migrate --data {}` first (it backs the index up)",
+                    dir.display(),
+                    dir.display()
+                )))
+            }
+            Some(v) => {
+                return Err(Error::InvalidArgument(format!(
+                    "index at {} has schema version {v}, newer than this build's \
+                     {SCHEMA_VERSION}: refusing to open it (use a newer shapeseek)",
+                    dir.display()
+                )))
+            }
+        }
+        Ok(Store {
+            meta: db.open_tree("meta").map_err(storage_err)?,
+            shapes: db.open_tree("shapes").map_err(storage_err)?,
+            signatures: db.open_tree("signatures").map_err(storage_err)?,
+            meshes: db.open_tree("meshes").map_err(storage_err)?,
+            by_hash: db.open_tree("by_hash").map_err(storage_err)?,
+            dir: dir.to_path_buf(),
+            db,
+        })
+    }
+
+    /// The data directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Id of the shape stored with this content hash, if any.
+    pub fn id_for_hash(&self, sha256: &[u8; 32]) -> Result<Option<String>> {
+        Ok(self
+            .by_hash
+            .get(sha256)
+            .map_err(storage_err)?
+            .map(|v| String::from_utf8_lossy(&v).into_owned()))
+    }
+
+    /// A fresh id (monotonic, 16 hex digits).
+    pub fn new_id(&self) -> Result<String> {
+        Ok(format!(
+            "{:016x}",
+            self.db.generate_id().map_err(storage_err)?
+        ))
+    }
+
+    /// Writes one shape (record, signature, original, hash entry) in one transaction, then
+    /// flushes. When the hash is already present (a concurrent identical upload won), nothing
+    /// is written and the existing id is returned.
+    pub fn insert(
+        &self,
+        record: &ShapeRecord,
+        sha256: &[u8; 32],
+        signature: &[u8],
+        original: &[u8],
+    ) -> Result<Inserted> {
+        let rec = serde_json::to_vec(record).map_err(storage_err)?;
+        let id = record.id.as_bytes();
+        let res: std::result::Result<Inserted, TransactionError<()>> =
+            (&self.shapes, &self.signatures, &self.meshes, &self.by_hash).transaction(
+                |(shapes, sigs, meshes, by_hash)| {
+                    if let Some(existing) = by_hash.get(sha256)? {
+                        return Ok(Inserted::Existing(
+                            String::from_utf8_lossy(&existing).into_owned(),
+                        ));
+                    }
+                    shapes.insert(id, rec.as_slice())?;
+                    sigs.insert(id, signature)?;
+                    meshes.insert(id, original)?;
+                    by_hash.insert(&sha256[..], id)?;
+                    Ok::<_, ConflictableTransactionError<()>>(Inserted::New(record.id.clone()))
+                },
+            );
+        let out = res.map_err(|e| storage_err(format!("{e:?}")))?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(out)
+    }
+
+    /// Deletes a shape from every tree in one transaction and flushes. False when absent.
+    pub fn delete(&self, id: &str) -> Result<bool> {
+        let key = id.as_bytes();
+        let res: std::result::Result<bool, TransactionError<()>> =
+            (&self.shapes, &self.signatures, &self.meshes, &self.by_hash).transaction(
+                |(shapes, sigs, meshes, by_hash)| {
+                    let Some(rec) = shapes.remove(key)? else {
+                        return Ok(false);
+                    };
+                    sigs.remove(key)?;
+                    meshes.remove(key)?;
+                    if let Ok(r) = serde_json::from_slice::<ShapeRecord>(&rec) {
+                        if let Ok(h) = hex::decode(&r.sha256) {
+                            by_hash.remove(h)?;
+                        }
+                    }
+                    Ok::<_, ConflictableTransactionError<()>>(true)
+                },
+            );
+        let out = res.map_err(|e| storage_err(format!("{e:?}")))?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(out)
+    }
+
+    /// The record of a shape.
+    pub fn get(&self, id: &str) -> Result<Option<ShapeRecord>> {
+        match self.shapes.get(id.as_bytes()).map_err(storage_err)? {
+            None => Ok(None),
+            Some(v) => Ok(Some(serde_json::from_slice(&v).map_err(storage_err)?)),
+        }
+    }
+
+    /// The stored signature bytes of a shape.
+    pub fn signature(&self, id: &str) -> Result<Option<Vec<u8>>> {
+        Ok(self
+            .signatures
+            .get(id.as_bytes())
+            .map_err(storage_err)?
+            .map(|v| v.to_vec()))
+    }
+
+    /// Replaces the stored signature (and the record's spec key) of an existing shape.
+    pub fn replace_signature(&self, record: &ShapeRecord, signature: &[u8]) -> Result<()> {
+        let rec = serde_json::to_vec(record).map_err(storage_err)?;
+        let id = record.id.as_bytes();
+        let res: std::result::Result<(), TransactionError<()>> = (&self.shapes, &self.signatures)
+            .transaction(|(shapes, sigs)| {
+                if shapes.get(id)?.is_some() {
+                    shapes.insert(id, rec.as_slice())?;
+                    sigs.insert(id, signature)?;
+                }
+                Ok::<_, ConflictableTransactionError<()>>(())
+            });
+        res.map_err(|e| storage_err(format!("{e:?}")))?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(())
+    }
+
+    /// The original upload of a shape.
+    pub fn mesh(&self, id: &str) -> Result<Option<Vec<u8>>> {
+        Ok(self
+            .meshes
+            .get(id.as_bytes())
+            .map_err(storage_err)?
+            .map(|v| v.to_vec()))
+    }
+
+    /// Records in id order, starting after `after` (exclusive), filtered by `tag`, at most
+    /// `limit`. Returns the page and whether more records follow.
+    pub fn list(
+        &self,
+        after: Option<&str>,
+        tag: Option<&str>,
+        limit: usize,
+    ) -> Result<(Vec<ShapeRecord>, bool)> {
+        let iter = match after {
+            Some(a) => self.shapes.range::<&[u8], _>((
+                std::ops::Bound::Excluded(a.as_bytes()),
+                std::ops::Bound::Unbounded,
+            )),
+            None => self.shapes.iter(),
+        };
+        let mut out = Vec::new();
+        for kv in iter {
+            let (_, v) = kv.map_err(storage_err)?;
+            let rec: ShapeRecord = serde_json::from_slice(&v).map_err(storage_err)?;
+            if let Some(t) = tag {
+                if !rec.tags.iter().any(|x| x == t) {
+                    continue;
+                }
+            }
+            if out.len() == limit {
+                return Ok((out, true));
+            }
+            out.push(rec);
+        }
+        Ok((out, false))
+    }
+
+    /// Every (record, signature bytes) pair, in id order.
+    pub fn all(&self) -> Result<Vec<(ShapeRecord, Vec<u8>)>> {
+        let mut out = Vec::new();
+        for kv in self.shapes.iter() {
+            let (k, v) = kv.map_err(storage_err)?;
+            let rec: ShapeRecord = serde_json::from_slice(&v).map_err(storage_err)?;
+            let sig = self
+                .signatures
+                .get(&k)
+                .map_err(storage_err)?
+                .ok_or_else(|| storage_err(format!("shape {} has no signature", rec.id)))?;
+            out.push((rec, sig.to_vec()));
+        }
+        Ok(out)
+    }
+
+    /// Number of stored shapes.
+    pub fn len(&self) -> usize {
+        self.shapes.len()
+    }
+
+    /// True when no shape is stored.
+    pub fn is_empty(&self) -> bool {
+        self.shapes.is_empty()
+    }
+
+    /// Bytes on disk (sled's estimate).
+    pub fn size_on_disk(&self) -> u64 {
+        self.db.size_on_disk().unwrap_or(0)
+    }
+
+    /// A `meta` value.
+    pub fn meta_get(&self, key: &str) -> Result<Option<Vec<u8>>> {
+        Ok(self
+            .meta
+            .get(key.as_bytes())
+            .map_err(storage_err)?
+            .map(|v| v.to_vec()))
+    }
+
+    /// Sets a `meta` value and flushes.
+    pub fn meta_set(&self, key: &str, value: &[u8]) -> Result<()> {
+        self.meta
+            .insert(key.as_bytes(), value)
+            .map_err(storage_err)?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(())
+    }
+
+    /// Stores the calibration JSON.
+    pub fn set_calibration(&self, json: &[u8]) -> Result<()> {
+        self.meta
+            .insert(KEY_CALIBRATION, json)
+            .map_err(storage_err)?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(())
+    }
+
+    /// The stored calibration JSON.
+    pub fn calibration(&self) -> Result<Option<Vec<u8>>> {
+        self.meta_get("calibration")
+    }
+
+    /// Records the default query spec and signature spec key in `meta`.
+    pub fn set_specs(&self, default_query: &[u8], spec_key: &str) -> Result<()> {
+        self.meta
+            .insert(KEY_DEFAULT_QUERY, default_query)
+            .map_err(storage_err)?;
+        self.meta
+            .insert(KEY_SPEC, spec_key.as_bytes())
+            .map_err(storage_err)?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(())
+    }
+
+    /// Flushes everything to disk.
+    pub fn flush(&self) -> Result<()> {
+        self.db.flush().map_err(storage_err)?;
+        Ok(())
+    }
+}
+
+/// Milliseconds since the Unix epoch.
+pub fn now_unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
+}

@@ -1,0 +1,251 @@
+//! Server configuration: one struct, from defaults, a TOML file, `SHAPESEEK_*` environment
+//! variables and command-line flags (later sources win).
+
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// Everything `shapeseek serve` can be told. Every field is also a TOML key of the config file
+/// and an environment variable `SHAPESEEK_<KEY IN UPPER CASE>` (e.g. `SHAPESEEK_MAX_VERTICES`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    /// Data directory (the sled index lives in `<data>/db`).
+    pub data: PathBuf,
+    /// Listen address `HOST:PORT` (port 0 picks a free one).
+    pub addr: String,
+    /// Largest accepted request body, bytes.
+    pub max_body_bytes: usize,
+    /// Largest accepted mesh, vertices (as read).
+    pub max_vertices: usize,
+    /// Largest accepted mesh, triangles (as read).
+    pub max_faces: usize,
+    /// Per-request time limit, seconds (503 `request.timeout` past it).
+    pub request_timeout_secs: f64,
+    /// CPU jobs (analysis + signature) run at once; 0 = number of cores.
+    pub workers: usize,
+    /// CPU jobs allowed to wait for a worker; more get 503 `server.busy`.
+    pub queue_capacity: usize,
+    /// `Retry-After` seconds sent with 503 `server.busy`.
+    pub retry_after_secs: u64,
+    /// Recalibrate when the index grew or shrank by more than this fraction since the last
+    /// calibration.
+    pub recalibrate_fraction: f64,
+    /// Largest `top_k` and rerank shortlist accepted.
+    pub max_top_k: usize,
+    /// Seconds granted to in-flight requests after SIGINT/SIGTERM before they are abandoned.
+    pub shutdown_grace_secs: f64,
+    /// Log format: `text` or `json`.
+    pub log_format: String,
+    /// Eigenpairs computed per shape for its signature (changing it recomputes the stored
+    /// signatures from the stored originals at the next start).
+    pub eigenpairs: usize,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            data: PathBuf::from("./shapeseek-data"),
+            addr: "127.0.0.1:8080".into(),
+            max_body_bytes: 64 << 20,
+            max_vertices: 500_000,
+            max_faces: 1_000_000,
+            request_timeout_secs: 120.0,
+            workers: 0,
+            queue_capacity: 16,
+            retry_after_secs: 2,
+            recalibrate_fraction: 0.1,
+            max_top_k: 1000,
+            shutdown_grace_secs: 30.0,
+            log_format: "text".into(),
+            eigenpairs: 100,
+        }
+    }
+}
+
+impl ServerConfig {
+    /// Defaults, then the TOML `file` (if any), then `SHAPESEEK_*` variables from `env`.
+    pub fn load(
+        file: Option<&std::path::Path>,
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<Self> {
+        let mut table = match toml::Value::try_from(ServerConfig::default()) {
+            Ok(toml::Value::Table(t)) => t,
+            _ => {
+                return Err(Error::InvalidArgument(
+                    "config: cannot serialise defaults".into(),
+                ))
+            }
+        };
+        if let Some(path) = file {
+            let text = std::fs::read_to_string(path).map_err(|e| {
+                Error::InvalidArgument(format!("config file {}: {e}", path.display()))
+            })?;
+            let file_table: toml::Table = toml::from_str(&text).map_err(|e| {
+                Error::InvalidArgument(format!("config file {}: {e}", path.display()))
+            })?;
+            for (k, v) in file_table {
+                if !table.contains_key(&k) {
+                    return Err(Error::InvalidArgument(format!(
+                        "config file {}: unknown key {k:?}",
+                        path.display()
+                    )));
+                }
+                table.insert(k, v);
+            }
+        }
+        for (k, v) in env {
+            let Some(key) = k.strip_prefix("SHAPESEEK_") else {
+                continue;
+            };
+            let key = key.to_ascii_lowercase();
+            if key == "config" || key == "log" {
+                continue;
+            }
+            let Some(old) = table.get(&key) else {
+                continue;
+            };
+            let new = match old {
+                toml::Value::Integer(_) => v.trim().parse::<i64>().map(toml::Value::Integer).ok(),
+                toml::Value::Float(_) => v.trim().parse::<f64>().map(toml::Value::Float).ok(),
+                toml::Value::Boolean(_) => v.trim().parse::<bool>().map(toml::Value::Boolean).ok(),
+                _ => Some(toml::Value::String(v.clone())),
+            }
+            .ok_or_else(|| {
+                Error::InvalidArgument(format!("environment {k}={v:?}: not a valid value"))
+            })?;
+            table.insert(key, new);
+        }
+        let cfg: ServerConfig = toml::Value::Table(table)
+            .try_into()
+            .map_err(|e| Error::InvalidArgument(format!("config: {e}")))?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Checks ranges.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: &str| Err(Error::InvalidArgument(format!("config: {m}")));
+        if self.max_body_bytes == 0 || self.max_vertices == 0 || self.max_faces == 0 {
+            return bad("max_body_bytes, max_vertices and max_faces must be > 0");
+        }
+        if !(self.request_timeout_secs.is_finite() && self.request_timeout_secs > 0.0) {
+            return bad("request_timeout_secs must be > 0");
+        }
+        if !(self.shutdown_grace_secs.is_finite() && self.shutdown_grace_secs >= 0.0) {
+            return bad("shutdown_grace_secs must be >= 0");
+        }
+        if !(self.recalibrate_fraction.is_finite() && self.recalibrate_fraction >= 0.0) {
+            return bad("recalibrate_fraction must be >= 0");
+        }
+        if !(2..=2000).contains(&self.eigenpairs) {
+            return bad("eigenpairs must be in 2..=2000");
+        }
+        if self.max_top_k == 0 {
+            return bad("max_top_k must be > 0");
+        }
+        if self.log_format != "text" && self.log_format != "json" {
+            return bad("log_format must be \"text\" or \"json\"");
+        }
+        Ok(())
+    }
+
+    /// Worker count with 0 resolved to the number of cores.
+    pub fn effective_workers(&self) -> usize {
+        if self.workers == 0 {
+            std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(2)
+        } else {
+            self.workers
+        }
+    }
+}
+
+/// `shapeseek serve` flags.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ServeArgs {
+    /// Data directory [default: ./shapeseek-data; env SHAPESEEK_DATA]
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Listen address HOST:PORT [default: 127.0.0.1:8080; env SHAPESEEK_ADDR]
+    #[arg(long)]
+    pub addr: Option<String>,
+    /// TOML config file [env SHAPESEEK_CONFIG]
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// CPU workers for analysis (0 = cores) [env SHAPESEEK_WORKERS]
+    #[arg(long)]
+    pub workers: Option<usize>,
+    /// Log format: text or json [env SHAPESEEK_LOG_FORMAT]
+    #[arg(long)]
+    pub log_format: Option<String>,
+}
+
+impl ServeArgs {
+    /// Defaults < config file < environment < flags.
+    pub fn to_config(&self) -> Result<ServerConfig> {
+        let env: Vec<(String, String)> = std::env::vars().collect();
+        let file = self
+            .config
+            .clone()
+            .or_else(|| std::env::var_os("SHAPESEEK_CONFIG").map(PathBuf::from));
+        let mut cfg = ServerConfig::load(file.as_deref(), env)?;
+        if let Some(d) = &self.data {
+            cfg.data = d.clone();
+        }
+        if let Some(a) = &self.addr {
+            cfg.addr = a.clone();
+        }
+        if let Some(w) = self.workers {
+            cfg.workers = w;
+        }
+        if let Some(f) = &self.log_format {
+            cfg.log_format = f.clone();
+        }
+        cfg.validate()?;
+        Ok(cfg)
+    }
+}
+
+/// `shapeseek migrate` flags.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct MigrateArgs {
+    /// Data directory [default: ./shapeseek-data; env SHAPESEEK_DATA]
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+}
+
+impl MigrateArgs {
+    /// The data directory to migrate.
+    pub fn data_dir(&self) -> PathBuf {
+        self.data
+            .clone()
+            .or_else(|| std::env::var_os("SHAPESEEK_DATA").map(PathBuf::from))
+            .unwrap_or_else(|| ServerConfig::default().data)
+    }
+
+    /// Runs the migration and returns a line for the user.
+    pub fn run(&self) -> Result<String> {
+        let dir = self.data_dir();
+        Ok(match crate::index::migrate(&dir)? {
+            crate::index::MigrateOutcome::Created(v) => {
+                format!(
+                    "created a new index at {} (schema version {v})",
+                    dir.display()
+                )
+            }
+            crate::index::MigrateOutcome::UpToDate(v) => {
+                format!(
+                    "index at {} is up to date (schema version {v})",
+                    dir.display()
+                )
+            }
+            crate::index::MigrateOutcome::Upgraded { from, to, backup } => format!(
+                "upgraded index at {} from schema version {from} to {to}; backup at {}",
+                dir.display(),
+                backup.display()
+            ),
+        })
+    }
+}

@@ -1,0 +1,497 @@
+//! HTTP handlers: translate requests to [`App`] calls and results to JSON.
+
+use super::problem::ApiError;
+use super::state::{validate_tags, App, SearchOptions, Upload};
+use crate::index::Engine;
+use crate::mesh::read::Format;
+use axum::body::Bytes;
+use axum::extract::{FromRequest, Multipart, Path, Query, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Deserialize;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+type AppState<E> = State<Arc<App<E>>>;
+
+/// Query parameters of a raw `POST /v1/shapes`.
+#[derive(Debug, Default, Deserialize)]
+pub struct IngestParams {
+    /// Format name or MIME type (overrides Content-Type as a hint; content still wins).
+    pub format: Option<String>,
+    /// Display name.
+    pub name: Option<String>,
+    /// Comma-separated tags.
+    pub tags: Option<String>,
+}
+
+/// Query parameters of a raw `POST /v1/search`.
+#[derive(Debug, Default, Deserialize)]
+pub struct SearchParams {
+    /// Format name or MIME type.
+    pub format: Option<String>,
+    /// Number of hits.
+    pub top_k: Option<usize>,
+    /// Comma-separated tags every hit must have.
+    pub tags: Option<String>,
+}
+
+/// Multipart `metadata` part of an ingest.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Metadata {
+    #[serde(default)]
+    name: Option<String>,
+    #[serde(default)]
+    tags: Vec<String>,
+}
+
+fn split_tags(s: Option<&str>) -> Vec<String> {
+    s.map(|s| {
+        s.split(',')
+            .map(|t| t.trim().to_string())
+            .filter(|t| !t.is_empty())
+            .collect()
+    })
+    .unwrap_or_default()
+}
+
+fn format_param(s: Option<&str>) -> Result<Option<Format>, ApiError> {
+    match s {
+        None | Some("") => Ok(None),
+        Some(f) => f.parse::<Format>().map(Some).map_err(|_| {
+            ApiError::invalid(format!(
+                "format {f:?}: expected obj, gltf, glb, ply, off, stl or a mesh MIME type"
+            ))
+        }),
+    }
+}
+
+fn content_type(headers: &HeaderMap) -> Option<String> {
+    headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .map(|s| s.to_ascii_lowercase())
+}
+
+fn is_multipart(headers: &HeaderMap) -> bool {
+    content_type(headers).is_some_and(|c| c.starts_with("multipart/form-data"))
+}
+
+fn is_json(headers: &HeaderMap) -> bool {
+    content_type(headers).is_some_and(|c| {
+        let e = c.split(';').next().unwrap_or("").trim().to_string();
+        e == "application/json" || e.ends_with("+json") && !e.starts_with("model/")
+    })
+}
+
+fn check_name(name: &Option<String>) -> Result<(), ApiError> {
+    if let Some(n) = name {
+        if n.is_empty() || n.chars().count() > 256 || n.chars().any(|c| c.is_control()) {
+            return Err(ApiError::invalid(
+                "name: 1 to 256 characters, no control characters",
+            ));
+        }
+    }
+    Ok(())
+}
+
+async fn read_raw<E: Engine>(
+    app: &Arc<App<E>>,
+    req: Request,
+    hint: Option<Format>,
+) -> Result<(Bytes, Option<Format>), ApiError> {
+    let hint = hint.or_else(|| content_type(req.headers()).and_then(|c| Format::from_mime(&c)));
+    let body = Bytes::from_request(req, app).await.map_err(|e| {
+        ApiError::new(
+            e.status(),
+            super::problem::code_for_status(e.status()),
+            e.body_text(),
+        )
+    })?;
+    if body.is_empty() {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "mesh.empty",
+            "empty request body: send the mesh file",
+        ));
+    }
+    Ok((body, hint))
+}
+
+/// Reads a multipart body: the `file` part and the named JSON part.
+async fn read_multipart<E: Engine>(
+    app: &Arc<App<E>>,
+    req: Request,
+    json_part: &str,
+) -> Result<(Bytes, Option<Format>, Option<Bytes>), ApiError> {
+    let mut mp = Multipart::from_request(req, app).await.map_err(|e| {
+        ApiError::new(
+            e.status(),
+            super::problem::code_for_status(e.status()),
+            e.body_text(),
+        )
+    })?;
+    let mut file = None;
+    let mut json = None;
+    let mp_err = |e: axum::extract::multipart::MultipartError| {
+        ApiError::new(
+            e.status(),
+            super::problem::code_for_status(e.status()),
+            e.body_text(),
+        )
+    };
+    while let Some(field) = mp.next_field().await.map_err(mp_err)? {
+        let name = field.name().unwrap_or("").to_string();
+        if name == "file" {
+            let hint = field
+                .content_type()
+                .and_then(Format::from_mime)
+                .or_else(|| {
+                    field
+                        .file_name()
+                        .and_then(|f| f.rsplit_once('.'))
+                        .and_then(|(_, ext)| Format::from_extension(ext))
+                });
+            let bytes = field.bytes().await.map_err(mp_err)?;
+            file = Some((bytes, hint));
+        } else if name == json_part {
+            json = Some(field.bytes().await.map_err(mp_err)?);
+        } else {
+            return Err(ApiError::invalid(format!(
+                "multipart: unexpected part {name:?} (expected \"file\" and \"{json_part}\")"
+            )));
+        }
+    }
+    let (bytes, hint) =
+        file.ok_or_else(|| ApiError::invalid("multipart: missing the \"file\" part"))?;
+    if bytes.is_empty() {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "mesh.empty",
+            "the \"file\" part is empty",
+        ));
+    }
+    Ok((bytes, hint, json))
+}
+
+/// `POST /v1/shapes`.
+pub async fn ingest<E: Engine>(
+    State(app): AppState<E>,
+    Query(params): Query<IngestParams>,
+    req: Request,
+) -> Result<Response, ApiError> {
+    let format = format_param(params.format.as_deref())?;
+    let up = if is_multipart(req.headers()) {
+        let (bytes, hint, meta) = read_multipart(&app, req, "metadata").await?;
+        let meta: Metadata = match meta {
+            Some(b) => serde_json::from_slice(&b)
+                .map_err(|e| ApiError::invalid(format!("metadata: {e}")))?,
+            None => Metadata::default(),
+        };
+        Upload {
+            bytes,
+            hint: format.or(hint),
+            name: meta.name.or(params.name),
+            tags: if meta.tags.is_empty() {
+                split_tags(params.tags.as_deref())
+            } else {
+                meta.tags
+            },
+        }
+    } else {
+        let (bytes, hint) = read_raw(&app, req, format).await?;
+        Upload {
+            bytes,
+            hint,
+            name: params.name,
+            tags: split_tags(params.tags.as_deref()),
+        }
+    };
+    check_name(&up.name)?;
+    validate_tags(&up.tags)?;
+    let res = app.ingest(up).await?;
+    let status = if res.created {
+        StatusCode::CREATED
+    } else {
+        StatusCode::OK
+    };
+    let location = format!("/v1/shapes/{}", res.id);
+    let mut resp = (status, Json(res)).into_response();
+    if let Ok(v) = HeaderValue::from_str(&location) {
+        resp.headers_mut().insert(header::LOCATION, v);
+    }
+    Ok(resp)
+}
+
+/// Query parameters of `GET /v1/shapes`.
+#[derive(Debug, Deserialize)]
+pub struct ListParams {
+    /// Page size, 1..=1000 (default 50).
+    pub limit: Option<usize>,
+    /// `next_cursor` of the previous page.
+    pub cursor: Option<String>,
+    /// Only shapes with this tag.
+    pub tag: Option<String>,
+}
+
+/// `GET /v1/shapes`.
+pub async fn list<E: Engine>(
+    State(app): AppState<E>,
+    Query(p): Query<ListParams>,
+) -> Result<Response, ApiError> {
+    let limit = p.limit.unwrap_or(50);
+    if !(1..=1000).contains(&limit) {
+        return Err(ApiError::invalid("limit must be in 1..=1000"));
+    }
+    let app2 = app.clone();
+    let (items, more) = tokio::task::spawn_blocking(move || {
+        app2.store
+            .list(p.cursor.as_deref(), p.tag.as_deref(), limit)
+    })
+    .await
+    .map_err(ApiError::internal)?
+    .map_err(ApiError::internal)?;
+    let next = if more {
+        items.last().map(|r| r.id.clone())
+    } else {
+        None
+    };
+    Ok(Json(serde_json::json!({ "items": items, "next_cursor": next })).into_response())
+}
+
+/// `GET /v1/shapes/{id}`.
+pub async fn get_shape<E: Engine>(
+    State(app): AppState<E>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    match app.store.get(&id).map_err(ApiError::internal)? {
+        Some(rec) => Ok(Json(rec).into_response()),
+        None => Err(ApiError::not_found(&id)),
+    }
+}
+
+/// `DELETE /v1/shapes/{id}`.
+pub async fn delete_shape<E: Engine>(
+    State(app): AppState<E>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    if app.delete(id.clone()).await? {
+        Ok(StatusCode::NO_CONTENT.into_response())
+    } else {
+        Err(ApiError::not_found(&id))
+    }
+}
+
+/// `GET /v1/shapes/{id}/mesh`: the original upload.
+pub async fn get_mesh<E: Engine>(
+    State(app): AppState<E>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let rec = app
+        .store
+        .get(&id)
+        .map_err(ApiError::internal)?
+        .ok_or_else(|| ApiError::not_found(&id))?;
+    let bytes = app
+        .store
+        .mesh(&id)
+        .map_err(ApiError::internal)?
+        .ok_or_else(|| ApiError::not_found(&id))?;
+    let mut resp = bytes.into_response();
+    let h = resp.headers_mut();
+    if let Ok(v) = HeaderValue::from_str(&rec.content_type) {
+        h.insert(header::CONTENT_TYPE, v);
+    }
+    if let Ok(v) = HeaderValue::from_str(&format!(
+        "attachment; filename=\"{}.{}\"",
+        rec.id, rec.format
+    )) {
+        h.insert(header::CONTENT_DISPOSITION, v);
+    }
+    Ok(resp)
+}
+
+/// `GET /v1/shapes/{id}/signature`: the distributions as JSON.
+pub async fn get_signature<E: Engine>(
+    State(app): AppState<E>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let bytes = app
+        .store
+        .signature(&id)
+        .map_err(ApiError::internal)?
+        .ok_or_else(|| ApiError::not_found(&id))?;
+    let sig = app
+        .engine
+        .decode_signature(&bytes)
+        .map_err(ApiError::internal)?;
+    Ok(Json(serde_json::json!({
+        "id": id,
+        "spec_key": app.engine.signature_spec_key(&sig),
+        "signature": app.engine.signature_json(&sig),
+    }))
+    .into_response())
+}
+
+/// `POST /v1/search`: JSON (by id), multipart (`file` + `query` JSON) or a raw mesh body.
+pub async fn search<E: Engine>(
+    State(app): AppState<E>,
+    Query(params): Query<SearchParams>,
+    req: Request,
+) -> Result<Response, ApiError> {
+    let headers = req.headers().clone();
+    let res = if is_json(&headers) {
+        let Json(opts) = Json::<SearchOptions>::from_request(req, &app)
+            .await
+            .map_err(|e| {
+                ApiError::new(
+                    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                        e.status()
+                    } else {
+                        StatusCode::BAD_REQUEST
+                    },
+                    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                        "limit.bytes"
+                    } else {
+                        "request.invalid"
+                    },
+                    e.body_text(),
+                )
+            })?;
+        if opts.id.is_none() {
+            return Err(ApiError::invalid(
+                "a JSON search needs \"id\"; to search by example upload the mesh (raw body or multipart)",
+            ));
+        }
+        app.search(opts, None).await?
+    } else if is_multipart(&headers) {
+        let (bytes, hint, query) = read_multipart(&app, req, "query").await?;
+        let opts: SearchOptions = match query {
+            Some(b) => {
+                serde_json::from_slice(&b).map_err(|e| ApiError::invalid(format!("query: {e}")))?
+            }
+            None => SearchOptions::default(),
+        };
+        if opts.id.is_some() {
+            return Err(ApiError::invalid(
+                "give either an uploaded file or an id, not both",
+            ));
+        }
+        let hint = format_param(params.format.as_deref())?.or(hint);
+        let q = app
+            .analyze_query(Upload {
+                bytes,
+                hint,
+                name: None,
+                tags: Vec::new(),
+            })
+            .await?;
+        app.search(opts, Some(q)).await?
+    } else {
+        let format = format_param(params.format.as_deref())?;
+        let (bytes, hint) = read_raw(&app, req, format).await?;
+        let opts = SearchOptions {
+            top_k: params.top_k,
+            tags: split_tags(params.tags.as_deref()),
+            ..Default::default()
+        };
+        // Validate cheap options before the expensive analysis.
+        validate_tags(&opts.tags)?;
+        if let Some(k) = opts.top_k {
+            if k == 0 || k > app.cfg.max_top_k {
+                return Err(ApiError::invalid(format!(
+                    "top_k must be in 1..={}",
+                    app.cfg.max_top_k
+                )));
+            }
+        }
+        let q = app
+            .analyze_query(Upload {
+                bytes,
+                hint,
+                name: None,
+                tags: Vec::new(),
+            })
+            .await?;
+        app.search(opts, Some(q)).await?
+    };
+    Ok(Json(res).into_response())
+}
+
+/// `GET /v1/index`: size, calibration, specs, queue.
+pub async fn index_info<E: Engine>(State(app): AppState<E>) -> Result<Response, ApiError> {
+    let (n, on, epoch) = {
+        let s = app.scan.read().unwrap_or_else(|p| p.into_inner());
+        (
+            s.len(),
+            s.calibrated_on(),
+            s.calibration()
+                .map(|c| app.engine.calibration_epoch(c))
+                .unwrap_or(0),
+        )
+    };
+    Ok(Json(serde_json::json!({
+        "shapes": n,
+        "calibration_epoch": epoch,
+        "calibrated_on": on,
+        "schema_version": crate::index::SCHEMA_VERSION,
+        "engine": app.engine.name(),
+        "spec_key": app.engine.spec_key(),
+        "signature_spec": app.engine.spec_json(),
+        "default_query": serde_json::to_value(app.engine.default_query()).map_err(ApiError::internal)?,
+        "size_on_disk": app.store.size_on_disk(),
+        "queue": {
+            "queued": app.pool.stats.queued.load(Ordering::Relaxed),
+            "running": app.pool.stats.running.load(Ordering::Relaxed),
+            "workers": app.cfg.effective_workers(),
+            "capacity": app.cfg.queue_capacity,
+        },
+    }))
+    .into_response())
+}
+
+/// `GET /healthz`: the process answers.
+pub async fn healthz() -> Response {
+    Json(serde_json::json!({"status": "ok"})).into_response()
+}
+
+/// `GET /readyz`: loaded and not shutting down.
+pub async fn readyz<E: Engine>(State(app): AppState<E>) -> Result<Response, ApiError> {
+    if app.ready.load(Ordering::Acquire) {
+        Ok(Json(serde_json::json!({"status": "ready", "shapes": app.store.len()})).into_response())
+    } else {
+        Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "server.not_ready",
+            "not ready (starting or shutting down)",
+        ))
+    }
+}
+
+/// `GET /metrics`: Prometheus text format.
+pub async fn metrics<E: Engine>(State(app): AppState<E>) -> Response {
+    let q = app.pool.stats.queued.load(Ordering::Relaxed);
+    let r = app.pool.stats.running.load(Ordering::Relaxed);
+    ::metrics::gauge!("shapeseek_queue_depth").set(q as f64);
+    ::metrics::gauge!("shapeseek_jobs_running").set(r as f64);
+    app.update_gauges();
+    let body = app.metrics.as_ref().map(|h| h.render()).unwrap_or_default();
+    (
+        [(
+            header::CONTENT_TYPE,
+            "text/plain; version=0.0.4; charset=utf-8",
+        )],
+        body,
+    )
+        .into_response()
+}
+
+/// The OpenAPI document (`api/openapi.yaml`, compiled in).
+pub const OPENAPI_YAML: &str = include_str!("../../api/openapi.yaml");
+
+/// `GET /openapi.yaml`.
+pub async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, "application/yaml")], OPENAPI_YAML).into_response()
+}

@@ -1,0 +1,86 @@
+//! `shapeseek serve`: the REST service on the embedded sled index.
+//!
+//! Endpoints (contract: `api/openapi.yaml`, served at `/openapi.yaml`):
+//!
+//! | method | path | what |
+//! | --- | --- | --- |
+//! | POST | `/v1/shapes` | ingest (raw body or multipart `file` + `metadata`); 201, or 200 for known bytes |
+//! | GET | `/v1/shapes` | list, `?limit&cursor&tag` |
+//! | GET, DELETE | `/v1/shapes/{id}` | record / delete |
+//! | GET | `/v1/shapes/{id}/mesh` | original bytes with their content type |
+//! | GET | `/v1/shapes/{id}/signature` | the signature's distributions as JSON |
+//! | POST | `/v1/search` | by id (JSON), by upload (raw or multipart `file` + `query`), rerank stages |
+//! | GET | `/v1/index` | size, calibration epoch, specs, queue |
+//! | GET | `/healthz`, `/readyz`, `/metrics`, `/openapi.yaml` | operations |
+//!
+//! Layers (outside in): request id → trace → metrics → panic → problem+json catch-all → body
+//! limit → per-request timeout (on `/v1`) → handlers. CPU work (reading, analysis, signatures)
+//! runs on the bounded [`limits::WorkPool`] (503 `server.busy` + `Retry-After` when full);
+//! ranking runs on rayon from a blocking thread. Configuration: [`ServerConfig`] (defaults <
+//! TOML file < `SHAPESEEK_*` environment < flags).
+
+pub mod config;
+pub mod handlers;
+pub mod limits;
+pub mod metrics;
+pub mod problem;
+pub mod router;
+pub mod state;
+
+pub use config::{MigrateArgs, ServeArgs, ServerConfig};
+pub use router::{start, start_with, Running};
+
+use crate::Result;
+
+/// Runs the server with the product engine until SIGINT/SIGTERM, then shuts down gracefully:
+/// stops accepting, lets in-flight requests finish for `shutdown_grace_secs`, abandons the rest
+/// (a shape is acknowledged only after its write was flushed, so an abandoned one is simply
+/// absent), flushes the index.
+pub async fn serve(cfg: ServerConfig) -> Result<()> {
+    init_tracing(&cfg.log_format);
+    let running = start(cfg).await?;
+    tracing::info!(addr = %running.addr, "listening");
+    shutdown_signal().await;
+    tracing::info!("shutdown signal received; draining");
+    running.shutdown().await
+}
+
+/// Installs a tracing subscriber (RUST_LOG or `info`), text or JSON. No-op if one is set.
+pub fn init_tracing(format: &str) {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stdout());
+    let _ = if format == "json" {
+        tracing_subscriber::fmt()
+            .json()
+            .with_env_filter(filter)
+            .try_init()
+    } else {
+        tracing_subscriber::fmt()
+            .with_ansi(ansi)
+            .with_env_filter(filter)
+            .try_init()
+    };
+}
+
+/// Resolves on SIGINT or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}

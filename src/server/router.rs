@@ -1,0 +1,241 @@
+//! Router, middleware and the server lifecycle.
+
+use super::config::ServerConfig;
+use super::handlers as h;
+use super::problem::{code_for_status, ApiError, PROBLEM_JSON};
+use super::state::App;
+use crate::index::Engine;
+use crate::Result;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::Router;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tower_http::request_id::{
+    MakeRequestId, PropagateRequestIdLayer, RequestId, SetRequestIdLayer,
+};
+use tower_http::trace::TraceLayer;
+
+/// Builds the router over a loaded [`App`].
+pub fn router<E: Engine>(app: Arc<App<E>>) -> Router {
+    let timeout = Duration::from_secs_f64(app.cfg.request_timeout_secs);
+    let v1 = Router::new()
+        .route("/v1/shapes", post(h::ingest::<E>).get(h::list::<E>))
+        .route(
+            "/v1/shapes/{id}",
+            get(h::get_shape::<E>).delete(h::delete_shape::<E>),
+        )
+        .route("/v1/shapes/{id}/mesh", get(h::get_mesh::<E>))
+        .route("/v1/shapes/{id}/signature", get(h::get_signature::<E>))
+        .route("/v1/search", post(h::search::<E>))
+        .route("/v1/index", get(h::index_info::<E>))
+        .layer(middleware::from_fn_with_state(timeout, timeout_mw));
+    Router::new()
+        .merge(v1)
+        .route("/healthz", get(h::healthz))
+        .route("/readyz", get(h::readyz::<E>))
+        .route("/metrics", get(h::metrics::<E>))
+        .route("/openapi.yaml", get(h::openapi))
+        .fallback(fallback)
+        .layer(DefaultBodyLimit::max(app.cfg.max_body_bytes))
+        .layer(middleware::map_response(problem_catch_all))
+        .layer(tower_http::catch_panic::CatchPanicLayer::custom(panic_to_problem))
+        .layer(middleware::from_fn(metrics_mw))
+        .layer(TraceLayer::new_for_http().make_span_with(|req: &Request| {
+            let rid = req
+                .headers()
+                .get("x-request-id")
+                .and_then(|v| v.to_str().ok())
+                .unwrap_or("-");
+            tracing::info_span!("request", method = %req.method(), uri = %req.uri(), request_id = %rid)
+        })
+        .on_response(tower_http::trace::DefaultOnResponse::new().level(tracing::Level::INFO)))
+        .layer(PropagateRequestIdLayer::x_request_id())
+        .layer(SetRequestIdLayer::x_request_id(Counter::default()))
+        .with_state(app)
+}
+
+#[derive(Clone, Default)]
+struct Counter(Arc<AtomicU64>);
+
+impl MakeRequestId for Counter {
+    fn make_request_id<B>(&mut self, _: &axum::http::Request<B>) -> Option<RequestId> {
+        let n = self.0.fetch_add(1, Ordering::Relaxed);
+        HeaderValue::from_str(&format!("{:x}-{n}", std::process::id()))
+            .ok()
+            .map(RequestId::new)
+    }
+}
+
+fn panic_to_problem(err: Box<dyn std::any::Any + Send + 'static>) -> Response {
+    let msg = err
+        .downcast_ref::<String>()
+        .map(|s| s.as_str())
+        .or_else(|| err.downcast_ref::<&str>().copied())
+        .unwrap_or("panic");
+    ApiError::internal(format!("handler panicked: {msg}")).into_response()
+}
+
+async fn fallback() -> ApiError {
+    ApiError::new(StatusCode::NOT_FOUND, "route.not_found", "no such route")
+}
+
+async fn timeout_mw(State(t): State<Duration>, req: Request, next: Next) -> Response {
+    match tokio::time::timeout(t, next.run(req)).await {
+        Ok(r) => r,
+        Err(_) => ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "request.timeout",
+            format!(
+                "the request took longer than {:.1} s and was abandoned",
+                t.as_secs_f64()
+            ),
+        )
+        .into_response(),
+    }
+}
+
+/// Turns any error response that is not already problem+json (extractor rejections, 405s,
+/// layers) into one, so clients only ever see one error format.
+async fn problem_catch_all(resp: Response) -> Response {
+    let status = resp.status();
+    if !(status.is_client_error() || status.is_server_error()) {
+        return resp;
+    }
+    let is_problem = resp
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with(PROBLEM_JSON));
+    if is_problem {
+        return resp;
+    }
+    let (parts, body) = resp.into_parts();
+    let text = axum::body::to_bytes(body, 64 << 10)
+        .await
+        .map(|b| String::from_utf8_lossy(&b).trim().to_string())
+        .unwrap_or_default();
+    let detail = if text.is_empty() {
+        status.canonical_reason().unwrap_or("error").to_string()
+    } else {
+        text
+    };
+    let mut out = ApiError::new(status, code_for_status(status), detail).into_response();
+    // Keep headers such as Allow (405) and Retry-After.
+    for (k, v) in parts.headers.iter() {
+        if k != header::CONTENT_TYPE && k != header::CONTENT_LENGTH {
+            out.headers_mut().insert(k.clone(), v.clone());
+        }
+    }
+    out
+}
+
+async fn metrics_mw(req: Request, next: Next) -> Response {
+    let start = Instant::now();
+    let method = req.method().to_string();
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map(|p| p.as_str().to_string())
+        .unwrap_or_else(|| "unmatched".into());
+    let resp = next.run(req).await;
+    let status = resp.status().as_u16().to_string();
+    metrics::counter!("shapeseek_http_requests_total", "method" => method.clone(), "route" => route.clone(), "status" => status).increment(1);
+    metrics::histogram!("shapeseek_http_request_duration_seconds", "method" => method, "route" => route)
+        .record(start.elapsed().as_secs_f64());
+    resp
+}
+
+/// Lifecycle hooks of a running app, independent of its engine type.
+trait Lifecycle: Send + Sync {
+    fn set_ready(&self, ready: bool);
+    fn flush(&self) -> Result<()>;
+}
+
+impl<E: Engine> Lifecycle for App<E> {
+    fn set_ready(&self, ready: bool) {
+        self.ready.store(ready, Ordering::Release);
+    }
+    fn flush(&self) -> Result<()> {
+        self.store.flush()
+    }
+}
+
+/// A server started by [`start`] / [`start_with`].
+pub struct Running {
+    /// The bound address (useful with port 0).
+    pub addr: SocketAddr,
+    app: Arc<dyn Lifecycle>,
+    stop: tokio::sync::oneshot::Sender<()>,
+    join: tokio::task::JoinHandle<std::io::Result<()>>,
+    grace: Duration,
+}
+
+impl Running {
+    /// Graceful shutdown: not ready, stop accepting, wait up to the grace period for
+    /// in-flight requests, abandon the rest, flush the index, release it.
+    pub async fn shutdown(self) -> Result<()> {
+        self.app.set_ready(false);
+        let _ = self.stop.send(());
+        let mut join = self.join;
+        match tokio::time::timeout(self.grace, &mut join).await {
+            Ok(Ok(r)) => r?,
+            Ok(Err(e)) => tracing::error!(error = %e, "server task failed"),
+            Err(_) => {
+                tracing::warn!("grace period over; abandoning in-flight requests");
+                join.abort();
+                let _ = join.await;
+            }
+        }
+        self.app.flush()?;
+        // Give blocking jobs that hold the index a moment to finish and drop it.
+        let deadline = Instant::now() + self.grace;
+        while Arc::strong_count(&self.app) > 1 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        tracing::info!("stopped");
+        Ok(())
+    }
+}
+
+/// Starts the server with the product engine (see [`crate::index::default_engine`]).
+pub async fn start(cfg: ServerConfig) -> Result<Running> {
+    let mut engine = crate::index::default_engine();
+    engine.analyze.eigen.k = cfg.eigenpairs;
+    start_with(cfg, engine).await
+}
+
+/// Loads the index (on a blocking thread), binds `cfg.addr` and serves in the background.
+pub async fn start_with<E: Engine>(cfg: ServerConfig, engine: E) -> Result<Running> {
+    cfg.validate()?;
+    let grace = Duration::from_secs_f64(cfg.shutdown_grace_secs);
+    let listener = tokio::net::TcpListener::bind(&cfg.addr).await?;
+    let addr = listener.local_addr()?;
+    let app = tokio::task::spawn_blocking(move || App::load(cfg, engine))
+        .await
+        .map_err(|e| crate::Error::Io(std::io::Error::other(e.to_string())))??;
+    let app = Arc::new(app);
+    let router = router(app.clone());
+    app.ready.store(true, Ordering::Release);
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let join = tokio::spawn(async move {
+        axum::serve(listener, router.into_make_service())
+            .with_graceful_shutdown(async move {
+                let _ = stopped.await;
+            })
+            .await
+    });
+    let lifecycle: Arc<dyn Lifecycle> = app;
+    Ok(Running {
+        addr,
+        app: lifecycle,
+        stop,
+        join,
+        grace,
+    })
+}

@@ -1,0 +1,715 @@
+//! The server's state and its non-HTTP operations: loading, ingest, delete, search,
+//! recalibration. Handlers only translate HTTP to these calls.
+
+use super::config::ServerConfig;
+use super::limits::WorkPool;
+use super::metrics as m;
+use super::problem::ApiError;
+use crate::index::scan::{by_score, Scored};
+use crate::index::{Engine, Inserted, ScanIndex, ShapeRecord, Store};
+use crate::mesh::read::{detect_format, read_mesh, Format, ReadLimits};
+use crate::pipeline::analyze;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, RwLock};
+use std::time::Instant;
+
+/// Calibration as stored in `meta` (the engine's calibration plus the count it saw).
+#[derive(Serialize, Deserialize)]
+struct StoredCalibration<C> {
+    calibrated_on: usize,
+    calibration: C,
+}
+
+/// Shared state of a running server.
+pub struct App<E: Engine> {
+    /// Configuration.
+    pub cfg: ServerConfig,
+    /// The sled store.
+    pub store: Store,
+    /// Signatures and scoring.
+    pub engine: Arc<E>,
+    /// The in-memory scan structure.
+    pub scan: Arc<RwLock<ScanIndex<E>>>,
+    /// Bounded CPU pool.
+    pub pool: WorkPool,
+    /// Mesh limits applied to uploads.
+    pub limits: ReadLimits,
+    /// False until loaded, and again once shutting down.
+    pub ready: AtomicBool,
+    recalibrating: AtomicBool,
+    /// Metrics handle.
+    pub metrics: Option<metrics_exporter_prometheus::PrometheusHandle>,
+}
+
+/// Per-stage milliseconds of one ingest or query analysis.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Timings {
+    /// Parsing the upload.
+    pub read_ms: f64,
+    /// Cleaning and normalisation.
+    pub prepare_ms: f64,
+    /// Laplacian assembly.
+    pub laplacian_ms: f64,
+    /// Factorisation.
+    pub factorization_ms: f64,
+    /// Eigen-iteration.
+    pub eigensolve_ms: f64,
+    /// Signature computation.
+    pub signature_ms: f64,
+    /// Transaction + flush (ingest only).
+    pub store_ms: f64,
+    /// Everything, including waiting for a worker.
+    pub total_ms: f64,
+}
+
+/// An upload to ingest.
+pub struct Upload {
+    /// The original bytes.
+    pub bytes: axum::body::Bytes,
+    /// Format hint (Content-Type, `?format=`, file extension).
+    pub hint: Option<Format>,
+    /// Display name, if given.
+    pub name: Option<String>,
+    /// Tags.
+    pub tags: Vec<String>,
+}
+
+/// Result of an ingest.
+#[derive(Debug, Serialize)]
+pub struct IngestResult {
+    /// Shape id.
+    pub id: String,
+    /// False when the same bytes were already stored (nothing was computed).
+    pub created: bool,
+    /// The stored record (with its preparation report).
+    pub shape: ShapeRecord,
+    /// Stage timings (absent when `created` is false).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub timings: Option<Timings>,
+}
+
+/// One rerank stage of a search. Tagged by `stage`; future stages (e.g. spectral
+/// Gromov–Wasserstein) are new variants with their own fields.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(tag = "stage", rename_all = "snake_case", deny_unknown_fields)]
+pub enum RerankStage {
+    /// Re-scores the best `shortlist` candidates of the previous stage with another query spec
+    /// (typically more channels or a costlier dissimilarity), exactly, and re-sorts them.
+    Exact {
+        /// How many candidates of the previous stage to re-score (default: 4 × top_k).
+        #[serde(default)]
+        shortlist: Option<usize>,
+        /// Query spec overrides for this stage (merged over the request's spec).
+        #[serde(default)]
+        spec: Option<serde_json::Value>,
+    },
+}
+
+/// The search options shared by all ways to give the query.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SearchOptions {
+    /// Stored shape to search with (JSON requests only).
+    #[serde(default)]
+    pub id: Option<String>,
+    /// Number of hits (default 10).
+    #[serde(default)]
+    pub top_k: Option<usize>,
+    /// Query spec overrides merged over the index's default (`channels`, `dissimilarity`,
+    /// `aggregation`, ...).
+    #[serde(default)]
+    pub spec: Option<serde_json::Value>,
+    /// Only shapes having all of these tags.
+    #[serde(default)]
+    pub tags: Vec<String>,
+    /// Rerank stages applied in order after the scan.
+    #[serde(default)]
+    pub rerank: Vec<RerankStage>,
+    /// Keep the query shape itself among the hits (search by id; default false).
+    #[serde(default)]
+    pub include_self: bool,
+}
+
+/// One search hit.
+#[derive(Debug, Clone, Serialize)]
+pub struct Hit {
+    /// Shape id.
+    pub id: String,
+    /// Display name.
+    pub name: String,
+    /// Score of the last stage (lower = more similar).
+    pub score: f64,
+    /// 1-based rank.
+    pub rank: usize,
+    /// Calibration epoch the scores were computed under.
+    pub calibration_epoch: u64,
+    /// Score of each stage that scored this hit (scan first).
+    pub stage_scores: Vec<f64>,
+}
+
+/// A search answer.
+#[derive(Debug, Serialize)]
+pub struct SearchResult {
+    /// Hits, best first.
+    pub hits: Vec<Hit>,
+    /// Calibration epoch used.
+    pub calibration_epoch: u64,
+    /// Shapes considered by the scan (after tag filters).
+    pub candidates: usize,
+    /// The effective query spec of the scan.
+    pub spec: serde_json::Value,
+    /// Stage names in order (`scan`, then the rerank stages).
+    pub stages: Vec<String>,
+    /// Milliseconds: query analysis (uploads), scan, rerank, total.
+    pub timings: SearchTimings,
+}
+
+/// Search timings.
+#[derive(Debug, Default, Serialize)]
+pub struct SearchTimings {
+    /// Analysis and signature of an uploaded query.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub analysis: Option<Timings>,
+    /// The full scan.
+    pub scan_ms: f64,
+    /// All rerank stages.
+    pub rerank_ms: f64,
+    /// End to end.
+    pub total_ms: f64,
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+fn storage(e: crate::Error) -> ApiError {
+    ApiError::internal(e)
+}
+
+/// Valid tags: 1..=64 characters, at most 32 of them.
+pub fn validate_tags(tags: &[String]) -> Result<(), ApiError> {
+    if tags.len() > 32 {
+        return Err(ApiError::invalid("at most 32 tags"));
+    }
+    for t in tags {
+        if t.is_empty() || t.chars().count() > 64 || t.chars().any(|c| c.is_control()) {
+            return Err(ApiError::invalid(format!(
+                "tag {t:?}: 1 to 64 characters, no control characters"
+            )));
+        }
+    }
+    Ok(())
+}
+
+impl<E: Engine> App<E> {
+    /// Opens the store, recomputes stale signatures, calibrates if needed, builds the scan.
+    pub fn load(cfg: ServerConfig, engine: E) -> crate::Result<Self> {
+        let store = Store::open(&cfg.data)?;
+        let engine = Arc::new(engine);
+        let limits = ReadLimits {
+            max_bytes: cfg.max_body_bytes,
+            max_vertices: cfg.max_vertices,
+            max_faces: cfg.max_faces,
+        };
+        let spec_key = engine.spec_key();
+        let default_query = serde_json::to_vec(&engine.default_query())
+            .map_err(|e| crate::Error::InvalidArgument(format!("default query: {e}")))?;
+        store.set_specs(&default_query, &spec_key)?;
+
+        let mut shapes = Vec::new();
+        let mut recomputed = 0usize;
+        for (mut rec, bytes) in store.all()? {
+            let sig = match engine.decode_signature(&bytes) {
+                Ok(s) if rec.spec_key == spec_key && engine.signature_spec_key(&s) == spec_key => s,
+                stale => {
+                    // Derivable data: recompute from the stored original.
+                    if let Err(e) = &stale {
+                        tracing::warn!(id = %rec.id, error = %e, "unreadable signature; recomputing");
+                    }
+                    let Some(orig) = store.mesh(&rec.id)? else {
+                        tracing::error!(id = %rec.id, "no original mesh to recompute from; skipped");
+                        continue;
+                    };
+                    let hint = Format::from_extension(&rec.format);
+                    let mesh = read_mesh(&orig, hint, &ReadLimits::unlimited())?;
+                    let analysis = analyze(&mesh, &engine.analyze_options())?;
+                    let sig = engine.compute(&analysis)?;
+                    rec.spec_key = spec_key.clone();
+                    store.replace_signature(&rec, &engine.encode_signature(&sig))?;
+                    recomputed += 1;
+                    sig
+                }
+            };
+            shapes.push((rec.id, rec.name, rec.tags, Arc::new(sig)));
+        }
+        if recomputed > 0 {
+            tracing::info!(recomputed, "signatures recomputed for the current spec");
+        }
+
+        let stored: Option<StoredCalibration<E::Calibration>> = store
+            .calibration()?
+            .and_then(|b| serde_json::from_slice(&b).ok());
+        let scan = if shapes.is_empty() {
+            ScanIndex::<E>::default()
+        } else {
+            let (cal, on) = match stored {
+                Some(s)
+                    if recomputed == 0
+                        && !moved(s.calibrated_on, shapes.len(), cfg.recalibrate_fraction) =>
+                {
+                    (s.calibration, s.calibrated_on)
+                }
+                other => {
+                    let epoch = other
+                        .map(|s| engine.calibration_epoch(&s.calibration) + 1)
+                        .unwrap_or(1);
+                    let sigs: Vec<&E::Signature> = shapes.iter().map(|s| &*s.3).collect();
+                    let cal = engine.calibrate(&sigs, epoch);
+                    let on = shapes.len();
+                    store.set_calibration(&to_json(&StoredCalibration {
+                        calibrated_on: on,
+                        calibration: cal.clone(),
+                    }))?;
+                    (cal, on)
+                }
+            };
+            ScanIndex::build(&*engine, Arc::new(cal), on, shapes)
+        };
+        let workers = cfg.effective_workers();
+        let app = App {
+            pool: WorkPool::new(workers, cfg.queue_capacity, cfg.retry_after_secs),
+            cfg,
+            store,
+            engine,
+            scan: Arc::new(RwLock::new(scan)),
+            limits,
+            ready: AtomicBool::new(false),
+            recalibrating: AtomicBool::new(false),
+            metrics: m::handle(),
+        };
+        app.update_gauges();
+        Ok(app)
+    }
+
+    /// Sets the index gauges.
+    pub fn update_gauges(&self) {
+        let (n, epoch) = {
+            let s = self.scan.read().unwrap_or_else(|p| p.into_inner());
+            (
+                s.len(),
+                s.calibration()
+                    .map(|c| self.engine.calibration_epoch(c))
+                    .unwrap_or(0),
+            )
+        };
+        metrics::gauge!("shapeseek_index_shapes").set(n as f64);
+        metrics::gauge!("shapeseek_calibration_epoch").set(epoch as f64);
+        metrics::gauge!("shapeseek_index_bytes").set(self.store.size_on_disk() as f64);
+    }
+
+    /// Current calibration epoch (0 = none yet).
+    pub fn epoch(&self) -> u64 {
+        let s = self.scan.read().unwrap_or_else(|p| p.into_inner());
+        s.calibration()
+            .map(|c| self.engine.calibration_epoch(c))
+            .unwrap_or(0)
+    }
+
+    /// Ingests an upload: idempotent by SHA-256 of the bytes.
+    pub async fn ingest(self: &Arc<Self>, up: Upload) -> Result<IngestResult, ApiError> {
+        let t0 = Instant::now();
+        let digest: [u8; 32] = Sha256::digest(&up.bytes).into();
+        if let Some(r) = self.existing(&digest)? {
+            return Ok(r);
+        }
+        let app = self.clone();
+        let res = self
+            .pool
+            .run(move || app.ingest_blocking(up, digest, t0))
+            .await??;
+        if res.created {
+            self.after_change();
+        }
+        Ok(res)
+    }
+
+    fn existing(&self, digest: &[u8; 32]) -> Result<Option<IngestResult>, ApiError> {
+        if let Some(id) = self.store.id_for_hash(digest).map_err(storage)? {
+            if let Some(rec) = self.store.get(&id).map_err(storage)? {
+                return Ok(Some(IngestResult {
+                    id,
+                    created: false,
+                    shape: rec,
+                    timings: None,
+                }));
+            }
+        }
+        Ok(None)
+    }
+
+    fn ingest_blocking(
+        &self,
+        up: Upload,
+        digest: [u8; 32],
+        t0: Instant,
+    ) -> Result<IngestResult, ApiError> {
+        // A twin upload may have been stored while this one waited.
+        if let Some(r) = self.existing(&digest)? {
+            return Ok(r);
+        }
+        let mut t = Timings::default();
+        let t1 = Instant::now();
+        let format = detect_format(&up.bytes, up.hint)?;
+        let mesh = read_mesh(&up.bytes, Some(format), &self.limits)?;
+        t.read_ms = ms(t1);
+        let area = mesh.area();
+        let analysis = analyze(&mesh, &self.engine.analyze_options())?;
+        t.prepare_ms = analysis.timings.prepare_ms;
+        t.laplacian_ms = analysis.timings.laplacian_ms;
+        t.factorization_ms = analysis.timings.factorization_ms;
+        t.eigensolve_ms = analysis.timings.eigensolve_ms;
+        let t2 = Instant::now();
+        let sig = self.engine.compute(&analysis)?;
+        t.signature_ms = ms(t2);
+        let t3 = Instant::now();
+        let id = self.store.new_id().map_err(storage)?;
+        let record = ShapeRecord {
+            name: up.name.clone().unwrap_or_else(|| id.clone()),
+            id,
+            tags: up.tags.clone(),
+            format: format.name().to_string(),
+            content_type: format.mime().to_string(),
+            bytes: up.bytes.len() as u64,
+            vertices: mesh.vertices.len(),
+            faces: mesh.faces.len(),
+            area,
+            sha256: hex::encode(digest),
+            created_unix_ms: crate::index::store::now_unix_ms(),
+            prepare: analysis.report.clone(),
+            spec_key: self.engine.signature_spec_key(&sig),
+        };
+        let sig_bytes = self.engine.encode_signature(&sig);
+        let outcome = self
+            .store
+            .insert(&record, &digest, &sig_bytes, &up.bytes)
+            .map_err(storage)?;
+        let id = match outcome {
+            Inserted::Existing(id) => {
+                return self
+                    .existing(&digest)?
+                    .ok_or_else(|| ApiError::internal(format!("shape {id} vanished")));
+            }
+            Inserted::New(id) => id,
+        };
+        {
+            let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
+            scan.insert(
+                &self.engine,
+                id.clone(),
+                record.name.clone(),
+                record.tags.clone(),
+                Arc::new(sig),
+                1,
+            );
+        }
+        t.store_ms = ms(t3);
+        t.total_ms = ms(t0);
+        for (stage, v) in [
+            ("read", t.read_ms),
+            ("prepare", t.prepare_ms),
+            ("laplacian", t.laplacian_ms),
+            ("factorization", t.factorization_ms),
+            ("eigensolve", t.eigensolve_ms),
+            ("signature", t.signature_ms),
+            ("store", t.store_ms),
+        ] {
+            m::stage(stage, v);
+        }
+        Ok(IngestResult {
+            id,
+            created: true,
+            shape: record,
+            timings: Some(t),
+        })
+    }
+
+    /// Deletes a shape. False when absent.
+    pub async fn delete(self: &Arc<Self>, id: String) -> Result<bool, ApiError> {
+        let app = self.clone();
+        let removed = tokio::task::spawn_blocking(move || -> Result<bool, ApiError> {
+            let removed = app.store.delete(&id).map_err(storage)?;
+            app.scan
+                .write()
+                .unwrap_or_else(|p| p.into_inner())
+                .remove(&id);
+            Ok(removed)
+        })
+        .await
+        .map_err(ApiError::internal)??;
+        if removed {
+            self.after_change();
+        }
+        Ok(removed)
+    }
+
+    /// After an insert or delete: gauges, and a background recalibration when the index size
+    /// moved by more than the configured fraction (searches go on meanwhile).
+    fn after_change(self: &Arc<Self>) {
+        self.update_gauges();
+        let needs = self
+            .scan
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .needs_recalibration(self.cfg.recalibrate_fraction);
+        if needs && !self.recalibrating.swap(true, Ordering::AcqRel) {
+            let app = self.clone();
+            tokio::task::spawn_blocking(move || app.recalibrate_loop());
+        }
+    }
+
+    fn recalibrate_loop(&self) {
+        loop {
+            let (snapshot, epoch) = {
+                let s = self.scan.read().unwrap_or_else(|p| p.into_inner());
+                if !s.needs_recalibration(self.cfg.recalibrate_fraction) {
+                    break;
+                }
+                (
+                    s.snapshot(),
+                    s.calibration()
+                        .map(|c| self.engine.calibration_epoch(c))
+                        .unwrap_or(0)
+                        + 1,
+                )
+            };
+            let t = Instant::now();
+            let sigs: Vec<&E::Signature> = snapshot.iter().map(|(_, s)| &**s).collect();
+            let cal = Arc::new(self.engine.calibrate(&sigs, epoch));
+            use rayon::prelude::*;
+            let prepared: HashMap<String, E::Prepared> = snapshot
+                .par_iter()
+                .map(|(id, s)| (id.clone(), self.engine.prepare(s, &cal)))
+                .collect();
+            let on = snapshot.len();
+            if let Err(e) = self.store.set_calibration(&to_json(&StoredCalibration {
+                calibrated_on: on,
+                calibration: (*cal).clone(),
+            })) {
+                tracing::error!(error = %e, "could not persist the calibration");
+            }
+            self.scan
+                .write()
+                .unwrap_or_else(|p| p.into_inner())
+                .install_calibration(&self.engine, cal, on, prepared);
+            tracing::info!(epoch, shapes = on, ms = ms(t), "recalibrated");
+            self.update_gauges();
+        }
+        self.recalibrating.store(false, Ordering::Release);
+        // A write that came between the last check and the reset saw the flag set and left the
+        // work to this loop: check once more.
+        let again = self
+            .scan
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .needs_recalibration(self.cfg.recalibrate_fraction);
+        if again && !self.recalibrating.swap(true, Ordering::AcqRel) {
+            self.recalibrate_loop();
+        }
+    }
+
+    /// The effective query spec: `overrides` (a JSON object) merged over `base`.
+    pub fn query_spec(
+        &self,
+        base: &serde_json::Value,
+        overrides: Option<&serde_json::Value>,
+    ) -> Result<(E::Query, serde_json::Value), ApiError> {
+        let mut v = base.clone();
+        if let Some(o) = overrides {
+            let serde_json::Value::Object(o) = o else {
+                return Err(ApiError::invalid("spec must be a JSON object"));
+            };
+            let serde_json::Value::Object(b) = &mut v else {
+                return Err(ApiError::internal("default query spec is not an object"));
+            };
+            for (k, val) in o {
+                if !b.contains_key(k) {
+                    return Err(ApiError::invalid(format!(
+                        "spec: unknown field {k:?} (known: {:?})",
+                        b.keys().collect::<Vec<_>>()
+                    )));
+                }
+                b.insert(k.clone(), val.clone());
+            }
+        }
+        let q: E::Query = serde_json::from_value(v.clone())
+            .map_err(|e| ApiError::invalid(format!("spec: {e}")))?;
+        self.engine
+            .validate_query(&q)
+            .map_err(|e| ApiError::invalid(format!("spec: {e}")))?;
+        Ok((q, v))
+    }
+
+    /// Analyses an uploaded query mesh on the pool (nothing is stored).
+    pub async fn analyze_query(
+        self: &Arc<Self>,
+        up: Upload,
+    ) -> Result<(E::Signature, Timings), ApiError> {
+        let app = self.clone();
+        let t0 = Instant::now();
+        self.pool
+            .run(move || -> Result<(E::Signature, Timings), ApiError> {
+                let mut t = Timings::default();
+                let t1 = Instant::now();
+                let mesh = read_mesh(&up.bytes, up.hint, &app.limits)?;
+                t.read_ms = ms(t1);
+                let analysis = analyze(&mesh, &app.engine.analyze_options())?;
+                t.prepare_ms = analysis.timings.prepare_ms;
+                t.laplacian_ms = analysis.timings.laplacian_ms;
+                t.factorization_ms = analysis.timings.factorization_ms;
+                t.eigensolve_ms = analysis.timings.eigensolve_ms;
+                let t2 = Instant::now();
+                let sig = app.engine.compute(&analysis)?;
+                t.signature_ms = ms(t2);
+                t.total_ms = ms(t0);
+                Ok((sig, t))
+            })
+            .await?
+    }
+
+    /// Searches with a stored shape (`id`) or an analysed upload (`query_sig`).
+    pub async fn search(
+        self: &Arc<Self>,
+        opts: SearchOptions,
+        query_sig: Option<(E::Signature, Timings)>,
+    ) -> Result<SearchResult, ApiError> {
+        let t0 = Instant::now();
+        let top_k = opts.top_k.unwrap_or(10);
+        if top_k == 0 || top_k > self.cfg.max_top_k {
+            return Err(ApiError::invalid(format!(
+                "top_k must be in 1..={}",
+                self.cfg.max_top_k
+            )));
+        }
+        validate_tags(&opts.tags)?;
+        let base = serde_json::to_value(self.engine.default_query()).map_err(ApiError::internal)?;
+        let (spec, spec_json) = self.query_spec(&base, opts.spec.as_ref())?;
+        let mut stages = Vec::new();
+        for st in &opts.rerank {
+            match st {
+                RerankStage::Exact { shortlist, spec: s } => {
+                    let n = shortlist.unwrap_or(4 * top_k);
+                    if n == 0 || n > self.cfg.max_top_k {
+                        return Err(ApiError::invalid(format!(
+                            "rerank shortlist must be in 1..={}",
+                            self.cfg.max_top_k
+                        )));
+                    }
+                    let (q, _) = self.query_spec(&spec_json, s.as_ref())?;
+                    stages.push((n, q));
+                }
+            }
+        }
+        if opts.rerank.len() > 8 {
+            return Err(ApiError::invalid("at most 8 rerank stages"));
+        }
+        let (query_sig, analysis_t) = match query_sig {
+            Some((s, t)) => (Some(Arc::new(s)), Some(t)),
+            None => (None, None),
+        };
+        if query_sig.is_none() && opts.id.is_none() {
+            return Err(ApiError::invalid(
+                "give a stored shape id, or upload a mesh to search by example",
+            ));
+        }
+        let app = self.clone();
+        let stage_names: Vec<String> = std::iter::once("scan".to_string())
+            .chain(opts.rerank.iter().map(|s| match s {
+                RerankStage::Exact { .. } => "exact".to_string(),
+            }))
+            .collect();
+        let (hits, epoch, candidates, scan_ms, rerank_ms) =
+            tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
+                let scan = app.scan.read().unwrap_or_else(|p| p.into_inner());
+                let Some(cal) = scan.calibration().cloned() else {
+                    if let Some(id) = &opts.id {
+                        return Err(ApiError::not_found(id));
+                    }
+                    return Ok((Vec::new(), 0, 0, 0.0, 0.0));
+                };
+                let epoch = app.engine.calibration_epoch(&cal);
+                let uploaded = query_sig.as_ref().map(|s| app.engine.prepare(s, &cal));
+                let (query, self_at) = match (&uploaded, &opts.id) {
+                    (Some(p), _) => (p, None),
+                    (None, Some(id)) => {
+                        let at = scan.position(id).ok_or_else(|| ApiError::not_found(id))?;
+                        (&scan.prepared()[at], Some(at))
+                    }
+                    (None, None) => return Err(ApiError::invalid("no query given")),
+                };
+                let exclude = if opts.include_self { None } else { self_at };
+                let tags = &opts.tags;
+                let keep = |at: usize| {
+                    Some(at) != exclude && tags.iter().all(|t| scan.tags(at).contains(t))
+                };
+                let candidates = (0..scan.len()).filter(|&at| keep(at)).count();
+                let first_k = stages.iter().map(|(n, _)| *n).max().unwrap_or(0).max(top_k);
+                let t1 = Instant::now();
+                let mut list: Vec<(Scored, Vec<f64>)> = scan
+                    .rank(&app.engine, query, &spec, first_k, &keep)
+                    .into_iter()
+                    .map(|s| (s, vec![s.score]))
+                    .collect();
+                let scan_ms = ms(t1);
+                let t2 = Instant::now();
+                for (n, q) in &stages {
+                    list.truncate(*n);
+                    for (s, scores) in list.iter_mut() {
+                        s.score = app.engine.score(query, &scan.prepared()[s.at], q);
+                        scores.push(s.score);
+                    }
+                    list.sort_by(|a, b| by_score(&a.0, &b.0));
+                }
+                let rerank_ms = ms(t2);
+                list.truncate(top_k);
+                let hits: Vec<Hit> = list
+                    .into_iter()
+                    .enumerate()
+                    .map(|(r, (s, stage_scores))| Hit {
+                        id: scan.id(s.at).to_string(),
+                        name: scan.name(s.at).to_string(),
+                        score: s.score,
+                        rank: r + 1,
+                        calibration_epoch: epoch,
+                        stage_scores,
+                    })
+                    .collect();
+                Ok((hits, epoch, candidates, scan_ms, rerank_ms))
+            })
+            .await
+            .map_err(ApiError::internal)??;
+        Ok(SearchResult {
+            hits,
+            calibration_epoch: epoch,
+            candidates,
+            spec: spec_json,
+            stages: stage_names,
+            timings: SearchTimings {
+                analysis: analysis_t,
+                scan_ms,
+                rerank_ms,
+                total_ms: ms(t0),
+            },
+        })
+    }
+}
+
+fn moved(calibrated_on: usize, n: usize, fraction: f64) -> bool {
+    (n as f64 - calibrated_on as f64).abs() > fraction * (calibrated_on as f64).max(1.0)
+}
+
+fn to_json<T: Serialize>(v: &T) -> Vec<u8> {
+    serde_json::to_vec(v).unwrap_or_default()
+}
