@@ -397,7 +397,10 @@ pub struct SignatureSpec {
     pub sketch_quantiles: usize,
     /// q5 hook: per-shape rescaling of the spectrum before kernels are evaluated
     /// ([`crate::scale`]); omitted from the JSON (and key) when `None`.
-    #[serde(default, skip_serializing_if = "crate::scale::SpectrumScaling::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "crate::scale::SpectrumScaling::is_none"
+    )]
     pub spectrum_scaling: crate::scale::SpectrumScaling,
 }
 
