@@ -902,19 +902,13 @@ pub fn paper_configs() -> Vec<Config> {
 /// lower), while aggregating a few small scales beat each single one; Sum is preferred to Sum²
 /// and Max because it weights the scales evenly and no single scale can dominate, the least
 /// tuned choice among near-equal results (83.47 vs 83.59 vs 82.46 mAP there).
-///
-/// Scale selection (q5, `docs/quality.md`): the spectrum of every shape is rescaled by its own
-/// fitted Weyl slope ([`crate::scale::SpectrumScaling::WeylFit`]) so that the three times mean
-/// the same thing on every shape; measured on bench/dev All mAP 83.37 → 84.30, and on the
-/// held-out classes of the class split 88.76 → 90.76 (tuned on the other four: 89.00 → 88.93).
 pub fn default_config() -> Config {
-    let mut spec = SignatureSpec::with_channels(
+    let spec = SignatureSpec::with_channels(
         SMALL_HEAT_SCALES
             .iter()
             .map(|&t| ChannelSpec::heat(t, Norm::L2))
             .collect(),
     );
-    spec.spectrum_scaling = crate::scale::SpectrumScaling::WeylFit;
     Config {
         name: "default".into(),
         query: QuerySpec {
