@@ -102,6 +102,10 @@ pub struct EvalArgs {
     /// windows keep only the short-range part of every distribution (truncated distance range).
     #[arg(long, default_value_t = 0.95)]
     pub window_percentile: f64,
+    /// Keep every mesh at its own size (no unit-area normalisation): the "raw" runs that show
+    /// what scaling does to each kernel (paper Table 2's Scale row).
+    #[arg(long)]
+    pub no_normalize: bool,
 }
 
 impl EvalArgs {
@@ -122,6 +126,7 @@ impl EvalArgs {
             rerank: Vec::new(),
             classes: Vec::new(),
             laplacian: "cotangent".into(),
+            no_normalize: false,
             window_percentile: 0.95,
         }
     }
@@ -607,6 +612,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     let cache = Cache::new(cache_dir)?;
     let mut opts = AnalyzeOptions::default();
     opts.eigen.k = args.k;
+    opts.prepare.normalize_area = !args.no_normalize;
     opts.laplacian = match args.laplacian.as_str() {
         "cotangent" => crate::laplace::LaplacianKind::Cotangent,
         "intrinsic-delaunay" => crate::laplace::LaplacianKind::IntrinsicDelaunay,
