@@ -1,5 +1,5 @@
 //! Per-shape scale selection: rescaling a shape's spectrum so that one set of diffusion times
-//! means the same thing on every shape (q5, retrieval quality).
+//! means the same thing on every shape.
 //!
 //! The pipeline already normalises every shape to unit area, which makes the times agree with
 //! Weyl's law in the mean: `λ_i ≈ 4π i / area`, so on a unit-area shape `t` sits where

@@ -395,7 +395,7 @@ pub struct SignatureSpec {
     pub geodesic_sources: usize,
     /// Number of quantile intervals stored per distribution channel.
     pub sketch_quantiles: usize,
-    /// q5 hook: per-shape rescaling of the spectrum before kernels are evaluated
+    /// Per-shape rescaling of the spectrum before kernels are evaluated
     /// ([`crate::scale`]); omitted from the JSON (and key) when `None`.
     #[serde(
         default,
@@ -512,7 +512,7 @@ pub struct Signature {
 /// does not match the mesh.
 pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Signature> {
     validate_spec(spec)?;
-    // q5 hook: scale selection by rescaling the spectrum (crate::scale).
+    // Scale selection by rescaling the spectrum (crate::scale).
     if !spec.spectrum_scaling.is_none() {
         let mut plain = spec.clone();
         plain.spectrum_scaling = crate::scale::SpectrumScaling::None;

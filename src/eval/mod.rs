@@ -86,7 +86,7 @@ pub struct EvalArgs {
     /// No progress output.
     #[arg(long)]
     pub quiet: bool,
-    // --- q5 (retrieval quality) options: see `crate::rerank` and docs/quality.md. ---
+    // --- Retrieval-quality options: see `crate::rerank` and docs/quality.md. ---
     /// Re-ranking stage applied to every configuration's ranking, evaluated as an extra
     /// configuration `<config>+<STAGE>` (repeatable): `sgw:K[:key=value]...`, a JSON stage or a
     /// JSON file (see `shapeseek::rerank::eval`).
@@ -728,7 +728,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         })
         .collect();
     let calibration_histograms_s = t_cal.elapsed().as_secs_f64();
-    // q5: re-ranking payloads, one set per distinct payload specification.
+    // Re-ranking payloads, one set per distinct payload specification.
     let mut rerank_notes = String::new();
     let mut payload_sets: Vec<(String, Vec<Option<crate::rerank::GwPayload>>)> = Vec::new();
     for (_, st) in &rerank_stages {
@@ -900,7 +900,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         reference_path.as_deref(),
     );
     if !rerank_notes.is_empty() {
-        markdown.push_str(&format!("\n## Re-ranking (q5)\n\n{rerank_notes}"));
+        markdown.push_str(&format!("\n## Re-ranking\n\n{rerank_notes}"));
     }
     if let Some(dir) = &args.out {
         std::fs::write(dir.join("results.md"), &markdown)?;
