@@ -30,6 +30,18 @@ enum BenchWhat {
     Spectrum(SpectrumBench),
     /// Signature computation from a computed spectrum (six-scale heat L2 and other channels).
     Signature(SignatureBench),
+    /// First-stage search latency over N stored signatures (the server's scan, without HTTP).
+    Search(SearchBench),
+}
+
+#[derive(Args)]
+struct SearchBench {
+    /// Stored signatures (synthetic: copies of a few generated shapes' signatures).
+    #[arg(long, value_delimiter = ',', default_value = "1000,100000")]
+    sizes: Vec<usize>,
+    /// Queries per size (p50 and p99 are reported).
+    #[arg(long, default_value_t = 50)]
+    queries: usize,
 }
 
 #[derive(Args)]
@@ -105,6 +117,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             None => run_all(b),
         },
         BenchWhat::Signature(b) => run_signature(b),
+        BenchWhat::Search(b) => run_search(b),
     }
 }
 
@@ -395,6 +408,55 @@ fn run_signature(b: &SignatureBench) -> Result<()> {
             walls[walls.len() / 2],
             walls[0],
             cpus[cpus.len() / 2]
+        );
+    }
+    Ok(())
+}
+
+fn run_search(b: &SearchBench) -> Result<()> {
+    use shapeseek::pipeline::{analyze, AnalyzeOptions};
+    use shapeseek::ranking::{calibrate, default_config, prepare_for_ranking, rank};
+    use shapeseek::signature::compute_signature;
+    let cfg = default_config();
+    let meshes = [
+        generate::bumpy_torus(60, 30),
+        generate::bumpy_torus(70, 28),
+        generate::bumpy_sphere(4, 0.3),
+        generate::bumpy_sphere(4, 0.2),
+    ];
+    let mut sigs = Vec::new();
+    for m in &meshes {
+        let a = analyze(m, &AnalyzeOptions::default())?;
+        sigs.push(compute_signature(&a, &cfg.signature)?);
+    }
+    let cal = calibrate(&sigs.iter().collect::<Vec<_>>(), &cfg.signature, 1);
+    println!(
+        "{:>10} {:>9} {:>9} {:>9}   (config `{}`, rayon threads {})",
+        "stored",
+        "p50 ms",
+        "p99 ms",
+        "max ms",
+        cfg.name,
+        rayon::current_num_threads()
+    );
+    for &n in &b.sizes {
+        let prepared: Vec<_> = (0..n)
+            .map(|i| prepare_for_ranking(&sigs[i % sigs.len()], &cal))
+            .collect();
+        let mut times = Vec::with_capacity(b.queries);
+        for q in 0..b.queries.max(1) {
+            let t = Instant::now();
+            let hits = rank(&prepared[q % n.max(1)], &prepared, &cfg.query);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            std::hint::black_box(hits);
+        }
+        times.sort_by(f64::total_cmp);
+        let pct = |p: f64| times[((times.len() - 1) as f64 * p).round() as usize];
+        println!(
+            "{n:>10} {:>9.2} {:>9.2} {:>9.2}",
+            pct(0.5),
+            pct(0.99),
+            times[times.len() - 1]
         );
     }
     Ok(())
