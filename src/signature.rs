@@ -622,7 +622,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
 
     let phi = sp.eigenvectors.as_ref();
     let l2_rows = l2_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means));
-    let near = match (&l2_quad, &graph) {
+    let near_field_of = |quad: &Option<Quadrature>| match (quad, &graph) {
         (Some(q), Some(g)) if near_field && !cell_means => match (&q.points, &q.owner) {
             (Some(points), Some(owner)) => Some(NearField::new(
                 g,
@@ -635,19 +635,8 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
         },
         _ => None,
     };
-    let lp_near = match (&lp_quad, &graph) {
-        (Some(q), Some(g)) if near_field && !cell_means => match (&q.points, &q.owner) {
-            (Some(points), Some(owner)) => Some(NearField::new(
-                g,
-                owner,
-                points.clone(),
-                &sp.eigenvectors,
-                &sp.mass,
-            )),
-            _ => None,
-        },
-        _ => None,
-    };
+    let near = near_field_of(&l2_quad);
+    let lp_near = near_field_of(&lp_quad);
     let ctx = SpectralContext {
         l2_rows,
         near,

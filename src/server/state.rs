@@ -205,6 +205,24 @@ pub fn validate_tags(tags: &[String]) -> Result<(), ApiError> {
 }
 
 impl<E: Engine> App<E> {
+    /// Prepare + spectrum + signature of a parsed mesh, recording the stage timings: the one
+    /// path shared by ingest and search-by-upload.
+    fn analyze_and_sign(
+        &self,
+        mesh: &crate::mesh::Mesh,
+        t: &mut Timings,
+    ) -> Result<(crate::pipeline::Analysis, E::Signature), ApiError> {
+        let analysis = analyze(mesh, &self.engine.analyze_options())?;
+        t.prepare_ms = analysis.timings.prepare_ms;
+        t.laplacian_ms = analysis.timings.laplacian_ms;
+        t.factorization_ms = analysis.timings.factorization_ms;
+        t.eigensolve_ms = analysis.timings.eigensolve_ms;
+        let t2 = Instant::now();
+        let sig = self.engine.compute(&analysis)?;
+        t.signature_ms = ms(t2);
+        Ok((analysis, sig))
+    }
+
     /// Opens the store, recomputes stale signatures, calibrates if needed, builds the scan.
     pub fn load(cfg: ServerConfig, engine: E) -> crate::Result<Self> {
         let store = Store::open(&cfg.data)?;
@@ -366,14 +384,7 @@ impl<E: Engine> App<E> {
         let mesh = read_mesh(&up.bytes, Some(format), &self.limits)?;
         t.read_ms = ms(t1);
         let area = mesh.area();
-        let analysis = analyze(&mesh, &self.engine.analyze_options())?;
-        t.prepare_ms = analysis.timings.prepare_ms;
-        t.laplacian_ms = analysis.timings.laplacian_ms;
-        t.factorization_ms = analysis.timings.factorization_ms;
-        t.eigensolve_ms = analysis.timings.eigensolve_ms;
-        let t2 = Instant::now();
-        let sig = self.engine.compute(&analysis)?;
-        t.signature_ms = ms(t2);
+        let (analysis, sig) = self.analyze_and_sign(&mesh, &mut t)?;
         let t3 = Instant::now();
         let id = self.store.new_id().map_err(storage)?;
         let record = ShapeRecord {
@@ -565,14 +576,7 @@ impl<E: Engine> App<E> {
                 let t1 = Instant::now();
                 let mesh = read_mesh(&up.bytes, up.hint, &app.limits)?;
                 t.read_ms = ms(t1);
-                let analysis = analyze(&mesh, &app.engine.analyze_options())?;
-                t.prepare_ms = analysis.timings.prepare_ms;
-                t.laplacian_ms = analysis.timings.laplacian_ms;
-                t.factorization_ms = analysis.timings.factorization_ms;
-                t.eigensolve_ms = analysis.timings.eigensolve_ms;
-                let t2 = Instant::now();
-                let sig = app.engine.compute(&analysis)?;
-                t.signature_ms = ms(t2);
+                let (_, sig) = app.analyze_and_sign(&mesh, &mut t)?;
                 t.total_ms = ms(t0);
                 Ok((sig, t))
             })
