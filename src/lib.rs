@@ -19,5 +19,6 @@ pub mod scale;
 pub mod server;
 pub mod signature;
 pub mod spectrum;
+pub mod topk;
 
 pub use error::{Error, Result};

@@ -597,13 +597,18 @@ impl Prepared {
     }
 }
 
+/// The channels a query spec compares: the first one for [`Aggregation::Single`], else all.
+pub fn compared_channels(q: &QuerySpec) -> &[String] {
+    match q.aggregation {
+        Aggregation::Single => &q.channels[..q.channels.len().min(1)],
+        _ => &q.channels,
+    }
+}
+
 /// Aggregated dissimilarity of two prepared shapes (lower = more similar; ∞ when a requested
 /// channel is missing from either).
 pub fn score(query: &Prepared, candidate: &Prepared, q: &QuerySpec) -> f64 {
-    let names: &[String] = match q.aggregation {
-        Aggregation::Single => &q.channels[..q.channels.len().min(1)],
-        _ => &q.channels,
-    };
+    let names = compared_channels(q);
     if names.is_empty() {
         return f64::INFINITY;
     }
@@ -612,6 +617,42 @@ pub fn score(query: &Prepared, candidate: &Prepared, q: &QuerySpec) -> f64 {
             channel_dissimilarity(q.dissimilarity, query.channel(n), candidate.channel(n))
         }),
     )
+}
+
+/// [`score`] of one query against many candidates, with the query's channels resolved once:
+/// candidates sharing the query's channel layout (one calibration) are scored without name
+/// lookups, others through [`score`]; both give the same value.
+pub struct Scorer<'a> {
+    query: &'a Prepared,
+    q: &'a QuerySpec,
+    idx: Vec<Option<usize>>,
+}
+
+impl<'a> Scorer<'a> {
+    /// Resolves the compared channels of `q` in `query`.
+    pub fn new(query: &'a Prepared, q: &'a QuerySpec) -> Self {
+        let idx = compared_channels(q)
+            .iter()
+            .map(|n| query.channel_index(n))
+            .collect();
+        Self { query, q, idx }
+    }
+
+    /// The score of `c` (equal to `score(query, c, q)`).
+    pub fn score(&self, c: &Prepared) -> f64 {
+        if c.names == self.query.names && !self.idx.is_empty() {
+            self.q.aggregation.apply(self.idx.iter().map(|&k| match k {
+                Some(k) => channel_dissimilarity(
+                    self.q.dissimilarity,
+                    self.query.channels[k].as_ref(),
+                    c.channels[k].as_ref(),
+                ),
+                None => f64::INFINITY,
+            }))
+        } else {
+            score(self.query, c, self.q)
+        }
+    }
 }
 
 fn fmt_range(ts: &[f64]) -> String {
@@ -672,29 +713,11 @@ const TABLE1: [Dissimilarity; 8] = [
 /// resolved once when the candidates share the query's channel layout (one calibration).
 pub fn rank(query: &Prepared, candidates: &[Prepared], q: &QuerySpec) -> Vec<(usize, f64)> {
     use rayon::prelude::*;
-    let names: &[String] = match q.aggregation {
-        Aggregation::Single => &q.channels[..q.channels.len().min(1)],
-        _ => &q.channels,
-    };
-    let idx: Vec<Option<usize>> = names.iter().map(|n| query.channel_index(n)).collect();
+    let scorer = Scorer::new(query, q);
     let mut out: Vec<(usize, f64)> = candidates
         .par_iter()
         .enumerate()
-        .map(|(i, c)| {
-            let s = if c.names == query.names && !names.is_empty() {
-                q.aggregation.apply(idx.iter().map(|&k| match k {
-                    Some(k) => channel_dissimilarity(
-                        q.dissimilarity,
-                        query.channels[k].as_ref(),
-                        c.channels[k].as_ref(),
-                    ),
-                    None => f64::INFINITY,
-                }))
-            } else {
-                score(query, c, q)
-            };
-            (i, s)
-        })
+        .map(|(i, c)| (i, scorer.score(c)))
         .collect();
     out.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
     out

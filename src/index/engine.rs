@@ -52,21 +52,31 @@ pub trait Engine: Send + Sync + 'static {
     fn validate_query(&self, q: &Self::Query) -> Result<()>;
     /// Dissimilarity of `candidate` to `query` under `spec`: lower is more similar.
     fn score(&self, query: &Self::Prepared, candidate: &Self::Prepared, spec: &Self::Query) -> f64;
-    /// Every candidate as `(position, score)`, sorted by score (`f64::total_cmp`), ties by
-    /// position. The default scores in parallel with [`Engine::score`].
-    fn rank(
+    /// An accelerator over the scan's prepared array, kept in step with it by the scan index.
+    type Table: ScanTable<Self::Prepared>;
+
+    /// The `k` best of `candidates` (the array `table` was built from) among positions passing
+    /// `keep`, as `(position, score)` sorted by score (`f64::total_cmp`), ties by position:
+    /// the head of the full ranking by [`Engine::score`], filtered.
+    fn top_k(
         &self,
         query: &Self::Prepared,
         candidates: &[Self::Prepared],
+        table: &Self::Table,
         spec: &Self::Query,
-    ) -> Vec<(usize, f64)> {
-        use rayon::prelude::*;
-        let mut out: Vec<(usize, f64)> = candidates
-            .par_iter()
-            .enumerate()
-            .map(|(i, c)| (i, self.score(query, c, spec)))
-            .collect();
-        out.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
-        out
-    }
+        k: usize,
+        keep: &(dyn Fn(usize) -> bool + Sync),
+    ) -> Vec<(usize, f64)>;
+}
+
+/// A structure derived from the scan's prepared array and edited with it (same positions).
+pub trait ScanTable<P>: Send + Sync + 'static {
+    /// The table of `prepared`, in order.
+    fn build(prepared: &[P]) -> Self;
+    /// Inserts `p` at position `at`.
+    fn insert(&mut self, at: usize, p: &P);
+    /// Replaces position `at` by `p`.
+    fn replace(&mut self, at: usize, p: &P);
+    /// Removes position `at`.
+    fn remove(&mut self, at: usize);
 }

@@ -1,10 +1,11 @@
 //! The product [`Engine`]: the framework's signatures and ranking (`crate::signature`,
 //! `crate::ranking`), exactly the calls the evaluation harness makes.
 
-use super::engine::Engine;
+use super::engine::{Engine, ScanTable};
 use crate::pipeline::{Analysis, AnalyzeOptions};
 use crate::ranking::{self, Calibration, Config, Prepared, QuerySpec};
 use crate::signature::{compute_signature, Signature};
+use crate::topk::BoundTable;
 use crate::{Error, Result};
 
 /// Framework engine: a signature spec + default query spec ([`Config`]) and the analysis
@@ -43,6 +44,7 @@ impl Engine for FwEngine {
     type Calibration = Calibration;
     type Prepared = Prepared;
     type Query = QuerySpec;
+    type Table = BoundTable;
 
     fn name(&self) -> String {
         format!("framework:{}", self.config.name)
@@ -106,12 +108,30 @@ impl Engine for FwEngine {
     fn score(&self, query: &Prepared, candidate: &Prepared, spec: &QuerySpec) -> f64 {
         ranking::score(query, candidate, spec)
     }
-    fn rank(
+    fn top_k(
         &self,
         query: &Prepared,
         candidates: &[Prepared],
+        table: &BoundTable,
         spec: &QuerySpec,
+        k: usize,
+        keep: &(dyn Fn(usize) -> bool + Sync),
     ) -> Vec<(usize, f64)> {
-        ranking::rank(query, candidates, spec)
+        table.top_k(query, candidates, spec, k, keep)
+    }
+}
+
+impl ScanTable<Prepared> for BoundTable {
+    fn build(prepared: &[Prepared]) -> Self {
+        BoundTable::build(prepared)
+    }
+    fn insert(&mut self, at: usize, p: &Prepared) {
+        BoundTable::insert(self, at, p)
+    }
+    fn replace(&mut self, at: usize, p: &Prepared) {
+        BoundTable::replace(self, at, p)
+    }
+    fn remove(&mut self, at: usize) {
+        BoundTable::remove(self, at)
     }
 }

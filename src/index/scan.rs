@@ -1,13 +1,14 @@
 //! The in-memory scan structure: every stored signature prepared under the current
-//! calibration, as parallel arrays sorted by id (= ingest order), ranked by the engine's
-//! `rank` (the framework's `ranking::rank`: rayon over the contiguous prepared array, sorted by
-//! score, ties by position — the same call and tie rule as the evaluation harness).
+//! calibration, as parallel arrays sorted by id (= ingest order), with the engine's scan table
+//! (for the framework: `topk::BoundTable`, contiguous group sums giving lower bounds), ranked
+//! by the engine's `top_k` — exactly the head of the framework's full ranking (sorted by score,
+//! ties by position: the same scores and tie rule as the evaluation harness).
 //!
 //! It is loaded from the store at start and kept in step with every insert and delete by the
 //! server (under a write lock held only for the update). Recalibration builds the new prepared
 //! array outside the lock and swaps it in, so searches never wait for it.
 
-use super::engine::Engine;
+use super::engine::{Engine, ScanTable};
 use rayon::prelude::*;
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -24,6 +25,7 @@ pub struct ScanIndex<E: Engine> {
     tags: Vec<Vec<String>>,
     signatures: Vec<Arc<E::Signature>>,
     prepared: Vec<E::Prepared>,
+    table: E::Table,
 }
 
 impl<E: Engine> Default for ScanIndex<E> {
@@ -36,6 +38,7 @@ impl<E: Engine> Default for ScanIndex<E> {
             tags: Vec::new(),
             signatures: Vec::new(),
             prepared: Vec::new(),
+            table: E::Table::build(&[]),
         }
     }
 }
@@ -120,6 +123,7 @@ impl<E: Engine> ScanIndex<E> {
         let mut idx = Self {
             calibration: Some(cal),
             calibrated_on,
+            table: E::Table::build(&prepared),
             prepared,
             ..Self::default()
         };
@@ -158,6 +162,7 @@ impl<E: Engine> ScanIndex<E> {
                 self.names[at] = name;
                 self.tags[at] = tags;
                 self.signatures[at] = signature;
+                self.table.replace(at, &prepared);
                 self.prepared[at] = prepared;
             }
             Err(at) => {
@@ -165,6 +170,7 @@ impl<E: Engine> ScanIndex<E> {
                 self.names.insert(at, name);
                 self.tags.insert(at, tags);
                 self.signatures.insert(at, signature);
+                self.table.insert(at, &prepared);
                 self.prepared.insert(at, prepared);
             }
         }
@@ -180,6 +186,7 @@ impl<E: Engine> ScanIndex<E> {
         self.tags.remove(at);
         self.signatures.remove(at);
         self.prepared.remove(at);
+        self.table.remove(at);
         true
     }
 
@@ -217,12 +224,13 @@ impl<E: Engine> ScanIndex<E> {
                 None => engine.prepare(&self.signatures[at], &cal),
             };
         }
+        self.table = E::Table::build(&self.prepared);
         self.calibration = Some(cal);
         self.calibrated_on = calibrated_on;
     }
 
     /// The `k` best shapes for `query` under `spec` among positions passing `keep`, best
-    /// first: the engine's full ranking, filtered, truncated.
+    /// first: the head of the engine's full ranking, filtered.
     pub fn rank(
         &self,
         engine: &E,
@@ -235,10 +243,8 @@ impl<E: Engine> ScanIndex<E> {
             return Vec::new();
         }
         engine
-            .rank(query, &self.prepared, spec)
+            .top_k(query, &self.prepared, &self.table, spec, k, keep)
             .into_iter()
-            .filter(|&(at, _)| keep(at))
-            .take(k)
             .map(|(at, score)| Scored { at, score })
             .collect()
     }
