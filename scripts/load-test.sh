@@ -1,42 +1,98 @@
 #!/usr/bin/env bash
-# Ingest throughput and search latency of a release `shapeseek serve` on 127.0.0.1.
+# Load figures of a release `shapeseek serve` on 127.0.0.1 (loopback only, bounded in time).
 #
-#   scripts/load-test.sh [MESH_DIR] [INGEST_PARALLEL] [SEARCH_SECONDS]
+#   scripts/load-test.sh ingest [MESH_DIR] [PARALLEL]
+#       Ingest throughput: uploads every mesh of MESH_DIR (default: 20 generated bumpy tori of
+#       10 000 vertices, `shapeseek bench meshes`) with PARALLEL (default 2) concurrent curl
+#       uploads into an empty index; prints shapes/s and the server's per-stage ingest times.
 #
-# Ingests every mesh of MESH_DIR (default ../shared/bench/mini/meshes) with INGEST_PARALLEL
-# concurrent uploads (curl), then runs `hey` (Debian package) for SEARCH_SECONDS against
-# POST /v1/search by id (top_k 10) at concurrency 4. Bounded in count and time; loopback only.
+#   scripts/load-test.sh search [N] [REQUESTS] [CONCURRENCY]
+#       Search latency: writes N (default 100000) synthetic shapes (`shapeseek bench populate`)
+#       into a fresh index, starts the server on it, then runs `hey` (Debian package) with
+#       REQUESTS (default 200) POST /v1/search by id (top_k 10) for each of 8 query ids at
+#       CONCURRENCY (default 1) and prints p50/p90/p99 over all requests.
+#
+# The temporary index is removed at exit. CARGO_TARGET_DIR is honoured.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-MESHES="${1:-../shared/bench/mini/meshes}"
-PAR="${2:-2}"
-SECS="${3:-10}"
+MODE="${1:-}"
 TARGET="${CARGO_TARGET_DIR:-$PWD/target}"
+BIN="$TARGET/release/shapeseek"
+case "$MODE" in
+  ingest|search) ;;
+  *) sed -n '2,16p' "$0"; exit 2 ;;
+esac
 command -v hey >/dev/null || { echo "hey not installed (apt-get install hey)"; exit 1; }
 cargo build --quiet --release --bin shapeseek
-DATA="$(mktemp -d)"
-"$TARGET/release/shapeseek" serve --data "$DATA/index" --addr 127.0.0.1:0 --log-format json \
-  >"$DATA/log" 2>&1 &
-PID=$!
-trap 'kill $PID 2>/dev/null || true; wait $PID 2>/dev/null || true; rm -rf "$DATA"' EXIT
-for _ in $(seq 1 300); do
-  ADDR="$(grep -o '"addr":"[^"]*"' "$DATA/log" | head -1 | cut -d'"' -f4 || true)"
-  [ -n "${ADDR:-}" ] && break
-  sleep 0.1
+WORK="$(mktemp -d)"
+PID=""
+cleanup() {
+  if [ -n "$PID" ]; then kill "$PID" 2>/dev/null || true; wait "$PID" 2>/dev/null || true; fi
+  rm -rf "$WORK"
+}
+trap cleanup EXIT
+
+start_server() {
+  "$BIN" serve --data "$WORK/index" --addr 127.0.0.1:0 --log-format json >"$WORK/log" 2>&1 &
+  PID=$!
+  ADDR=""
+  for _ in $(seq 1 6000); do
+    ADDR="$(grep -o '"addr":"[^"]*"' "$WORK/log" | head -1 | cut -d'"' -f4 || true)"
+    [ -n "$ADDR" ] && curl -sf "http://$ADDR/readyz" >/dev/null 2>&1 && break
+    kill -0 "$PID" 2>/dev/null || { cat "$WORK/log"; exit 1; }
+    sleep 0.1
+  done
+  URL="http://$ADDR"
+  echo "server ready at $URL"
+}
+
+if [ "$MODE" = ingest ]; then
+  MESHES="${2:-}"
+  PAR="${3:-2}"
+  if [ -z "$MESHES" ]; then
+    MESHES="$WORK/meshes"
+    "$BIN" bench meshes --out "$MESHES" --count 20 --size 10000
+  fi
+  start_server
+  N=$(ls "$MESHES" | wc -l)
+  echo "ingesting $N meshes from $MESHES, $PAR at a time"
+  START=$(date +%s.%N)
+  ls "$MESHES" | xargs -P "$PAR" -I{} sh -c \
+    "curl -s -o /dev/null -w '%{http_code}\n' --max-time 600 -X POST --data-binary @'$MESHES/{}' '$URL/v1/shapes?name={}'" \
+    > "$WORK/codes"
+  END=$(date +%s.%N)
+  echo "status codes: $(sort "$WORK/codes" | uniq -c | tr '\n' ' ')"
+  python3 -c "n=$N; t=$END-$START; print(f'ingest: {n} shapes in {t:.1f} s = {n/t:.2f} shapes/s')"
+  curl -s "$URL/metrics" | grep -E '^shapeseek_ingest_stage_seconds_(sum|count)' || true
+  echo "load average: $(cut -d' ' -f1-3 /proc/loadavg)"
+  exit 0
+fi
+
+N="${2:-100000}"
+REQ="${3:-200}"
+CONC="${4:-1}"
+"$BIN" bench populate --data "$WORK/index" --count "$N"
+start_server
+IDS=$(curl -s "$URL/v1/shapes?limit=100" | python3 -c '
+import json, sys
+items = json.load(sys.stdin)["items"]
+print(" ".join(items[i]["id"] for i in range(0, len(items), max(1, len(items) // 8))[:8]))')
+echo "search by id: $REQ requests for each of 8 ids, concurrency $CONC, index of $N shapes"
+: > "$WORK/times.csv"
+for ID in $IDS; do
+  hey -n "$REQ" -c "$CONC" -o csv -m POST -T application/json \
+    -d "{\"id\":\"$ID\",\"top_k\":10}" "$URL/v1/search" | tail -n +2 >> "$WORK/times.csv"
 done
-URL="http://$ADDR"
-N=$(ls "$MESHES" | wc -l)
-echo "ingesting $N meshes from $MESHES, $PAR at a time, into $URL"
-START=$(date +%s.%N)
-ls "$MESHES" | xargs -P "$PAR" -I{} sh -c \
-  "curl -s -o /dev/null -w '%{http_code}\n' --max-time 600 -X POST --data-binary @'$MESHES/{}' '$URL/v1/shapes?name={}'" \
-  > "$DATA/codes"
-END=$(date +%s.%N)
-echo "status codes: $(sort "$DATA/codes" | uniq -c | tr '\n' ' ')"
-python3 -c "import sys; n=$N; t=$END-$START; print(f'ingest: {n} shapes in {t:.1f} s = {n/t:.2f} shapes/s')"
-curl -s "$URL/metrics" | grep -E '^shapeseek_ingest_stage_seconds_(sum|count)' || true
-ID=$(curl -s "$URL/v1/shapes?limit=1" | python3 -c 'import json,sys; print(json.load(sys.stdin)["items"][0]["id"])')
-echo "search by id $ID for $SECS s, concurrency 4:"
-hey -z "${SECS}s" -c 4 -m POST -T application/json -d "{\"id\":\"$ID\",\"top_k\":10}" "$URL/v1/search" \
-  | sed -n '/Summary/,/Status code distribution/p;/\[200\]/p'
-curl -s "$URL/v1/index" | python3 -c 'import json,sys; d=json.load(sys.stdin); print("index:", d["shapes"], "shapes, epoch", d["calibration_epoch"], "size", d["size_on_disk"], "bytes")'
+python3 - "$WORK/times.csv" <<'EOF'
+import sys
+rows = [l.split(",") for l in open(sys.argv[1]) if l.strip()]
+codes = {}
+for r in rows:
+    codes[r[6]] = codes.get(r[6], 0) + 1
+t = sorted(float(r[0]) * 1e3 for r in rows)
+pct = lambda p: t[min(len(t) - 1, round((len(t) - 1) * p))]
+print(f"requests {len(t)}, status {codes}")
+print(f"latency ms: p50 {pct(0.5):.1f}  p90 {pct(0.9):.1f}  p99 {pct(0.99):.1f}  max {t[-1]:.1f}")
+EOF
+curl -s "$URL/metrics" | grep -E '^shapeseek_index_shapes' || true
+echo "load average: $(cut -d' ' -f1-3 /proc/loadavg)"

@@ -64,6 +64,19 @@ pub struct ShapeRecord {
     pub spec_key: String,
 }
 
+/// One shape for [`Store::insert_batch`].
+#[derive(Debug, Clone)]
+pub struct BatchItem {
+    /// The record.
+    pub record: ShapeRecord,
+    /// SHA-256 of `original`.
+    pub sha256: [u8; 32],
+    /// Encoded signature.
+    pub signature: Vec<u8>,
+    /// Original upload bytes.
+    pub original: Vec<u8>,
+}
+
 /// Maps a sled error to the library error (storage failures are I/O failures).
 pub fn storage_err(e: impl std::fmt::Display) -> Error {
     Error::Io(std::io::Error::other(format!("index storage: {e}")))
@@ -208,6 +221,29 @@ impl Store {
         signature: &[u8],
         original: &[u8],
     ) -> Result<Inserted> {
+        let out = self.write_one(record, sha256, signature, original)?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(out)
+    }
+
+    /// Bulk loading: writes every shape as [`Store::insert`] does (one transaction each) and
+    /// flushes once at the end; nothing is durable before that flush.
+    pub fn insert_batch(&self, items: &[BatchItem]) -> Result<Vec<Inserted>> {
+        let out = items
+            .iter()
+            .map(|it| self.write_one(&it.record, &it.sha256, &it.signature, &it.original))
+            .collect::<Result<Vec<_>>>()?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(out)
+    }
+
+    fn write_one(
+        &self,
+        record: &ShapeRecord,
+        sha256: &[u8; 32],
+        signature: &[u8],
+        original: &[u8],
+    ) -> Result<Inserted> {
         let rec = serde_json::to_vec(record).map_err(storage_err)?;
         let id = record.id.as_bytes();
         let res: std::result::Result<Inserted, TransactionError<()>> =
@@ -225,9 +261,7 @@ impl Store {
                     Ok::<_, ConflictableTransactionError<()>>(Inserted::New(record.id.clone()))
                 },
             );
-        let out = res.map_err(|e| storage_err(format!("{e:?}")))?;
-        self.db.flush().map_err(storage_err)?;
-        Ok(out)
+        res.map_err(|e| storage_err(format!("{e:?}")))
     }
 
     /// Deletes a shape from every tree in one transaction and flushes. False when absent.
@@ -249,9 +283,7 @@ impl Store {
                     Ok::<_, ConflictableTransactionError<()>>(true)
                 },
             );
-        let out = res.map_err(|e| storage_err(format!("{e:?}")))?;
-        self.db.flush().map_err(storage_err)?;
-        Ok(out)
+        res.map_err(|e| storage_err(format!("{e:?}")))
     }
 
     /// The record of a shape.
