@@ -611,6 +611,8 @@ fn run_populate(b: &PopulateBench) -> Result<()> {
                 sha256,
                 signature: engine.encode_signature(sig),
                 original,
+                // No re-ranking payload: a spectral-GW stage ranks these after real shapes.
+                payload: None,
             });
         }
         store.insert_batch(&items)?;

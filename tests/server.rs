@@ -663,6 +663,107 @@ fn ranking_equals_library_ranking() {
     }
 }
 
+/// The spectral Gromov–Wasserstein stage re-orders the scan's shortlist by the library's GW
+/// score between payloads computed here from the same bytes (by id and by upload), and bad
+/// stage options are refused.
+#[test]
+fn spectral_gw_stage_equals_library_scores() {
+    use shapeseek::rerank::{compute_payload, gw_score, GwOptions, GwPayload, PayloadSpec};
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |_| {});
+    let a = s.addr;
+    let shapes = ingest_corpus(a);
+    let mut opts = shapeseek::pipeline::AnalyzeOptions::default();
+    opts.eigen.k = K;
+    let payloads: Vec<GwPayload> = shapes
+        .iter()
+        .map(|(.., bytes)| {
+            let mesh = shapeseek::mesh::read::read_mesh(bytes, None, &Default::default()).unwrap();
+            let analysis = shapeseek::pipeline::analyze(&mesh, &opts).unwrap();
+            compute_payload(&analysis, &PayloadSpec::default()).unwrap()
+        })
+        .collect();
+    let at = |id: &str| shapes.iter().position(|s| s.0 == id).unwrap();
+    let ids = |v: &Value| -> Vec<String> {
+        let mut out: Vec<String> = v["hits"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|h| h["id"].as_str().unwrap().to_string())
+            .collect();
+        out.sort();
+        out
+    };
+    let stage = json!([{"stage": "spectral_gw", "shortlist": 4}]);
+    for (qi, (qid, ..)) in shapes.iter().enumerate() {
+        let scan = post_json(a, "/v1/search", &json!({"id": qid, "top_k": 4})).json();
+        let r = post_json(
+            a,
+            "/v1/search",
+            &json!({"id": qid, "top_k": 4, "rerank": stage}),
+        );
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        let v = r.json();
+        assert_eq!(v["stages"], json!(["scan", "spectral_gw"]));
+        assert_eq!(
+            ids(&v),
+            ids(&scan),
+            "the stage re-orders the shortlist only"
+        );
+        let mut last = f64::NEG_INFINITY;
+        for h in v["hits"].as_array().unwrap() {
+            let expected = gw_score(
+                &payloads[qi],
+                &payloads[at(h["id"].as_str().unwrap())],
+                &GwOptions::default(),
+            );
+            let got = h["score"].as_f64().unwrap();
+            assert!(
+                (got - expected).abs() <= 1e-12 * expected.abs().max(1e-300),
+                "GW score {got} vs library {expected}"
+            );
+            assert_eq!(h["stage_scores"].as_array().unwrap().len(), 2);
+            assert!(got >= last, "hits sorted by the GW score");
+            last = got;
+        }
+    }
+
+    // By upload (multipart): the payload computed from the upload equals the stored one, so
+    // the answer equals the by-id search that keeps the query itself.
+    let (qid, _, _, qbytes) = &shapes[4];
+    let by_id = post_json(
+        a,
+        "/v1/search",
+        &json!({"id": qid, "top_k": 3, "include_self": true, "rerank": stage}),
+    )
+    .json();
+    let (ct, body) = multipart(&[
+        ("file", Some("q.obj"), Some("model/obj"), qbytes),
+        (
+            "query",
+            None,
+            Some("application/json"),
+            json!({"top_k": 3, "rerank": stage}).to_string().as_bytes(),
+        ),
+    ]);
+    let r = http(a, "POST", "/v1/search", Some(&ct), &body);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["hits"], by_id["hits"]);
+
+    for bad in [
+        json!({"stage": "spectral_gw", "shortlist": 0}),
+        json!({"stage": "spectral_gw", "shortlist": 201}),
+        json!({"stage": "spectral_gw", "eps_rel": 2.0}),
+        json!({"stage": "spectral_gw", "outer_iterations": 0}),
+        json!({"stage": "spectral_gw", "blend": 1.5}),
+        json!({"stage": "spectral_gw", "samples": 10}),
+    ] {
+        post_json(a, "/v1/search", &json!({"id": qid, "rerank": [bad]}))
+            .problem(400, "request.invalid");
+    }
+    s.stop();
+}
+
 #[test]
 fn concurrent_ingest_and_search() {
     let dir = tempfile::tempdir().unwrap();
@@ -1067,6 +1168,13 @@ fn sigkill_during_ingest_leaves_a_consistent_index() {
             200,
             "{id} without its signature"
         );
+        let gw =
+            json!({"id": id, "top_k": 1, "rerank": [{"stage": "spectral_gw", "shortlist": 1}]});
+        assert_eq!(
+            post_json(a, "/v1/search", &gw).status,
+            200,
+            "{id} without its re-ranking payload"
+        );
     }
     let info = get(a, "/v1/index").json();
     assert_eq!(info["shapes"].as_u64().unwrap() as usize, items.len());
@@ -1318,4 +1426,73 @@ fn migrate_backs_up_then_upgrades() {
         migrate_with(&data, &steps, 1).unwrap(),
         MigrateOutcome::UpToDate(1)
     );
+}
+
+/// Version 1 → 2 computes every shape's re-ranking payload from its stored original: the
+/// payloads equal those written at ingest, bit for bit, and the server opens the result.
+#[test]
+fn migrate_from_version_1_computes_payloads() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |_| {});
+    let shapes: Vec<String> = [icosphere(2), torus(1.0, 0.35, 20, 10)]
+        .iter()
+        .enumerate()
+        .map(|(i, m)| {
+            let r = ingest(
+                s.addr,
+                &format!("s{i}"),
+                "",
+                &bytes_of(m, Format::Off),
+                "model/off",
+            );
+            assert_eq!(r.status, 201);
+            r.json()["id"].as_str().unwrap().to_string()
+        })
+        .collect();
+    s.stop();
+    let written: Vec<Vec<u8>> = {
+        let store = shapeseek::index::Store::open(dir.path()).unwrap();
+        shapes
+            .iter()
+            .map(|id| {
+                store
+                    .payload(id)
+                    .unwrap()
+                    .expect("payload written at ingest")
+            })
+            .collect()
+    };
+    // Make it a version-1 index: no payloads tree content, version 1.
+    {
+        let db = sled::open(dir.path().join("db")).unwrap();
+        db.open_tree("payloads").unwrap().clear().unwrap();
+        db.flush().unwrap();
+    }
+    shapeseek::index::migrate::stamp_version(dir.path(), 1).unwrap();
+    let e = shapeseek::index::Store::open(dir.path())
+        .err()
+        .expect("a version-1 index is refused")
+        .to_string();
+    assert!(e.contains("shapeseek migrate"), "{e}");
+    let MigrateOutcome::Upgraded { from, to, .. } = migrate(dir.path()).unwrap() else {
+        panic!("not upgraded")
+    };
+    assert_eq!((from, to), (1, SCHEMA_VERSION));
+    let store = shapeseek::index::Store::open(dir.path()).unwrap();
+    for (id, before) in shapes.iter().zip(&written) {
+        assert_eq!(
+            store.payload(id).unwrap().as_ref(),
+            Some(before),
+            "payload of {id} after migration"
+        );
+    }
+    drop(store);
+    let s = Server::start(dir.path(), |_| {});
+    let v = post_json(
+        s.addr,
+        "/v1/search",
+        &json!({"id": shapes[0], "rerank": [{"stage": "spectral_gw"}]}),
+    );
+    assert_eq!(v.status, 200, "{}", String::from_utf8_lossy(&v.body));
+    s.stop();
 }

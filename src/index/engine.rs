@@ -18,7 +18,7 @@ pub trait Engine: Send + Sync + 'static {
     /// Corpus calibration (histogram ranges) with an epoch number.
     type Calibration: Clone + Send + Sync + Serialize + DeserializeOwned + 'static;
     /// What ranking scans: a signature derived under a calibration.
-    type Prepared: Send + Sync + 'static;
+    type Prepared: Clone + Send + Sync + 'static;
     /// How two prepared signatures are compared (channels, dissimilarity, aggregation).
     type Query: Clone + Send + Sync + Serialize + DeserializeOwned + 'static;
 

@@ -20,9 +20,75 @@ pub struct Step {
     pub apply: fn(&sled::Db) -> Result<()>,
 }
 
-/// Upgrade steps, in order. Version 1 is the first on-disk format, so there is none yet; a
-/// version-2 format adds `Step { from: 1, .. }` and `migrations/0002_*.md`.
-pub const STEPS: &[Step] = &[];
+/// Upgrade steps, in order (`migrations/000N_*.md` describes version N).
+pub const STEPS: &[Step] = &[Step {
+    from: 1,
+    description: "adds the `payloads` tree: the spectral Gromov–Wasserstein payload of every \
+                  stored shape, computed from its stored original",
+    apply: add_payloads,
+}];
+
+/// Version 1 → 2: computes the re-ranking payload ([`PayloadSpec::default`], the one the
+/// server computes at ingest) of every shape from its stored original, with the product
+/// engine's analysis options and the index's eigenpair count (the `-k<N>` suffix of
+/// `meta/spec_key`, as version 1 documents it). A shape whose original cannot be analysed is
+/// left without a payload (a spectral-GW stage ranks it after the scored ones) and reported
+/// on stderr.
+fn add_payloads(db: &sled::Db) -> Result<()> {
+    use crate::index::Engine;
+    use crate::mesh::read::{read_mesh, Format, ReadLimits};
+    use crate::rerank::{compute_payload, PayloadSpec};
+    let shapes = db.open_tree("shapes").map_err(storage_err)?;
+    let meshes = db.open_tree("meshes").map_err(storage_err)?;
+    let payloads = db.open_tree("payloads").map_err(storage_err)?;
+    let mut options = crate::index::default_engine().analyze_options();
+    let meta = db.open_tree("meta").map_err(storage_err)?;
+    if let Some(key) = meta.get("spec_key").map_err(storage_err)? {
+        let key = String::from_utf8_lossy(&key).into_owned();
+        if let Some(k) = key.rsplit_once("-k").and_then(|(_, k)| k.parse().ok()) {
+            options.eigen.k = k;
+        }
+    }
+    let spec = PayloadSpec::default();
+    let total = shapes.len();
+    let (mut done, mut failed) = (0usize, 0usize);
+    for entry in shapes.iter() {
+        let (key, rec) = entry.map_err(storage_err)?;
+        let id = String::from_utf8_lossy(&key).into_owned();
+        let payload = (|| -> Result<Vec<u8>> {
+            let rec: super::ShapeRecord = serde_json::from_slice(&rec)
+                .map_err(|e| Error::InvalidArgument(format!("record: {e}")))?;
+            let orig = meshes
+                .get(&key)
+                .map_err(storage_err)?
+                .ok_or_else(|| Error::InvalidArgument("no stored original".into()))?;
+            let mesh = read_mesh(
+                &orig,
+                Format::from_extension(&rec.format),
+                &ReadLimits::unlimited(),
+            )?;
+            let analysis = crate::pipeline::analyze(&mesh, &options)?;
+            Ok(compute_payload(&analysis, &spec)?.to_bytes())
+        })();
+        match payload {
+            Ok(p) => {
+                payloads.insert(&key, p).map_err(storage_err)?;
+            }
+            Err(e) => {
+                failed += 1;
+                eprintln!("shape {id}: no payload ({e})");
+            }
+        }
+        done += 1;
+        if done % 50 == 0 || done == total {
+            eprintln!("payloads: {done}/{total}");
+        }
+    }
+    if failed > 0 {
+        eprintln!("payloads: {failed} of {total} shapes left without one");
+    }
+    Ok(())
+}
 
 /// What [`migrate`] did.
 #[derive(Debug, Clone, PartialEq)]

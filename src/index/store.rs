@@ -1,6 +1,6 @@
 //! The sled store: trees, records, atomic writes and the schema version.
 //!
-//! Trees (schema version 1, see `migrations/0001_initial.md`):
+//! Trees (schema version 2, see `migrations/0001_initial.md` and `0002_payloads.md`):
 //!
 //! | tree | key | value |
 //! | --- | --- | --- |
@@ -8,14 +8,15 @@
 //! | `meta` | `calibration` | JSON of the engine's calibration (with its epoch) |
 //! | `meta` | `default_query` | JSON of the default query spec |
 //! | `meta` | `spec_key` | the signature spec key the stored signatures were computed with |
-//! | `meta` | `created_at` | RFC 3339-ish UTC timestamp (informational) |
+//! | `meta` | `created_at` | Unix milliseconds as decimal text (informational) |
 //! | `shapes` | id | [`ShapeRecord`] as JSON |
 //! | `signatures` | id | engine signature bytes |
 //! | `meshes` | id | the original upload, byte for byte |
 //! | `by_hash` | SHA-256 of the upload (32 bytes) | id |
+//! | `payloads` | id | spectral Gromov–Wasserstein payload (`rerank::GwPayload::to_bytes`) |
 //!
 //! Ids are 16 lower-case hex digits of a monotonic counter, so key order is ingest order.
-//! A shape is written by one sled transaction over the four data trees, then the database is
+//! A shape is written by one sled transaction over the five data trees, then the database is
 //! flushed before the caller acknowledges it: after a crash a shape is wholly there or absent.
 
 use crate::mesh::prepare::PrepareReport;
@@ -25,7 +26,7 @@ use sled::transaction::{ConflictableTransactionError, TransactionError, Transact
 use std::path::{Path, PathBuf};
 
 /// The on-disk schema version this build reads and writes.
-pub const SCHEMA_VERSION: u32 = 1;
+pub const SCHEMA_VERSION: u32 = 2;
 
 const KEY_SCHEMA: &[u8] = b"schema_version";
 const KEY_CALIBRATION: &[u8] = b"calibration";
@@ -75,6 +76,8 @@ pub struct BatchItem {
     pub signature: Vec<u8>,
     /// Original upload bytes.
     pub original: Vec<u8>,
+    /// Encoded re-ranking payload, if any.
+    pub payload: Option<Vec<u8>>,
 }
 
 /// Maps a sled error to the library error (storage failures are I/O failures).
@@ -133,6 +136,7 @@ pub struct Store {
     signatures: sled::Tree,
     meshes: sled::Tree,
     by_hash: sled::Tree,
+    payloads: sled::Tree,
 }
 
 impl Store {
@@ -146,7 +150,7 @@ impl Store {
             Some(SCHEMA_VERSION) => {}
             None => {
                 // A new index, unless data trees already have content (then it is not ours).
-                for t in ["shapes", "signatures", "meshes", "by_hash"] {
+                for t in ["shapes", "signatures", "meshes", "by_hash", "payloads"] {
                     let tree = db.open_tree(t).map_err(storage_err)?;
                     if !tree.is_empty() {
                         return Err(Error::InvalidArgument(format!(
@@ -184,6 +188,7 @@ impl Store {
             signatures: db.open_tree("signatures").map_err(storage_err)?,
             meshes: db.open_tree("meshes").map_err(storage_err)?,
             by_hash: db.open_tree("by_hash").map_err(storage_err)?,
+            payloads: db.open_tree("payloads").map_err(storage_err)?,
             dir: dir.to_path_buf(),
             db,
         })
@@ -220,8 +225,9 @@ impl Store {
         sha256: &[u8; 32],
         signature: &[u8],
         original: &[u8],
+        payload: Option<&[u8]>,
     ) -> Result<Inserted> {
-        let out = self.write_one(record, sha256, signature, original)?;
+        let out = self.write_one(record, sha256, signature, original, payload)?;
         self.db.flush().map_err(storage_err)?;
         Ok(out)
     }
@@ -231,7 +237,15 @@ impl Store {
     pub fn insert_batch(&self, items: &[BatchItem]) -> Result<Vec<Inserted>> {
         let out = items
             .iter()
-            .map(|it| self.write_one(&it.record, &it.sha256, &it.signature, &it.original))
+            .map(|it| {
+                self.write_one(
+                    &it.record,
+                    &it.sha256,
+                    &it.signature,
+                    &it.original,
+                    it.payload.as_deref(),
+                )
+            })
             .collect::<Result<Vec<_>>>()?;
         self.db.flush().map_err(storage_err)?;
         Ok(out)
@@ -243,47 +257,78 @@ impl Store {
         sha256: &[u8; 32],
         signature: &[u8],
         original: &[u8],
+        payload: Option<&[u8]>,
     ) -> Result<Inserted> {
         let rec = serde_json::to_vec(record).map_err(storage_err)?;
         let id = record.id.as_bytes();
-        let res: std::result::Result<Inserted, TransactionError<()>> =
-            (&self.shapes, &self.signatures, &self.meshes, &self.by_hash).transaction(
-                |(shapes, sigs, meshes, by_hash)| {
-                    if let Some(existing) = by_hash.get(sha256)? {
-                        return Ok(Inserted::Existing(
-                            String::from_utf8_lossy(&existing).into_owned(),
-                        ));
-                    }
-                    shapes.insert(id, rec.as_slice())?;
-                    sigs.insert(id, signature)?;
-                    meshes.insert(id, original)?;
-                    by_hash.insert(&sha256[..], id)?;
-                    Ok::<_, ConflictableTransactionError<()>>(Inserted::New(record.id.clone()))
-                },
-            );
+        let res: std::result::Result<Inserted, TransactionError<()>> = (
+            &self.shapes,
+            &self.signatures,
+            &self.meshes,
+            &self.by_hash,
+            &self.payloads,
+        )
+            .transaction(|(shapes, sigs, meshes, by_hash, payloads)| {
+                if let Some(existing) = by_hash.get(sha256)? {
+                    return Ok(Inserted::Existing(
+                        String::from_utf8_lossy(&existing).into_owned(),
+                    ));
+                }
+                shapes.insert(id, rec.as_slice())?;
+                sigs.insert(id, signature)?;
+                meshes.insert(id, original)?;
+                by_hash.insert(&sha256[..], id)?;
+                if let Some(p) = payload {
+                    payloads.insert(id, p)?;
+                }
+                Ok::<_, ConflictableTransactionError<()>>(Inserted::New(record.id.clone()))
+            });
         res.map_err(|e| storage_err(format!("{e:?}")))
     }
 
     /// Deletes a shape from every tree in one transaction and flushes. False when absent.
     pub fn delete(&self, id: &str) -> Result<bool> {
         let key = id.as_bytes();
-        let res: std::result::Result<bool, TransactionError<()>> =
-            (&self.shapes, &self.signatures, &self.meshes, &self.by_hash).transaction(
-                |(shapes, sigs, meshes, by_hash)| {
-                    let Some(rec) = shapes.remove(key)? else {
-                        return Ok(false);
-                    };
-                    sigs.remove(key)?;
-                    meshes.remove(key)?;
-                    if let Ok(r) = serde_json::from_slice::<ShapeRecord>(&rec) {
-                        if let Ok(h) = hex::decode(&r.sha256) {
-                            by_hash.remove(h)?;
-                        }
+        let res: std::result::Result<bool, TransactionError<()>> = (
+            &self.shapes,
+            &self.signatures,
+            &self.meshes,
+            &self.by_hash,
+            &self.payloads,
+        )
+            .transaction(|(shapes, sigs, meshes, by_hash, payloads)| {
+                let Some(rec) = shapes.remove(key)? else {
+                    return Ok(false);
+                };
+                sigs.remove(key)?;
+                meshes.remove(key)?;
+                payloads.remove(key)?;
+                if let Ok(r) = serde_json::from_slice::<ShapeRecord>(&rec) {
+                    if let Ok(h) = hex::decode(&r.sha256) {
+                        by_hash.remove(h)?;
                     }
-                    Ok::<_, ConflictableTransactionError<()>>(true)
-                },
-            );
+                }
+                Ok::<_, ConflictableTransactionError<()>>(true)
+            });
         res.map_err(|e| storage_err(format!("{e:?}")))
+    }
+
+    /// The stored re-ranking payload of a shape (`None`: absent or no such shape).
+    pub fn payload(&self, id: &str) -> Result<Option<Vec<u8>>> {
+        Ok(self
+            .payloads
+            .get(id.as_bytes())
+            .map_err(storage_err)?
+            .map(|v| v.to_vec()))
+    }
+
+    /// Writes (or replaces) the re-ranking payload of a stored shape and flushes.
+    pub fn set_payload(&self, id: &str, payload: &[u8]) -> Result<()> {
+        self.payloads
+            .insert(id.as_bytes(), payload)
+            .map_err(storage_err)?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(())
     }
 
     /// The record of a shape.

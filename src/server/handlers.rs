@@ -1,7 +1,7 @@
 //! HTTP handlers: translate requests to [`App`] calls and results to JSON.
 
 use super::problem::ApiError;
-use super::state::{validate_tags, App, SearchOptions, Upload};
+use super::state::{validate_tags, App, RerankStage, SearchOptions, Upload};
 use crate::index::Engine;
 use crate::mesh::read::Format;
 use axum::body::Bytes;
@@ -380,13 +380,17 @@ pub async fn search<E: Engine>(
             ));
         }
         let hint = format_param(params.format.as_deref())?.or(hint);
+        let with_payload = opts.rerank.iter().any(RerankStage::needs_payload);
         let q = app
-            .analyze_query(Upload {
-                bytes,
-                hint,
-                name: None,
-                tags: Vec::new(),
-            })
+            .analyze_query(
+                Upload {
+                    bytes,
+                    hint,
+                    name: None,
+                    tags: Vec::new(),
+                },
+                with_payload,
+            )
             .await?;
         app.search(opts, Some(q)).await?
     } else {
@@ -408,12 +412,15 @@ pub async fn search<E: Engine>(
             }
         }
         let q = app
-            .analyze_query(Upload {
-                bytes,
-                hint,
-                name: None,
-                tags: Vec::new(),
-            })
+            .analyze_query(
+                Upload {
+                    bytes,
+                    hint,
+                    name: None,
+                    tags: Vec::new(),
+                },
+                false,
+            )
             .await?;
         app.search(opts, Some(q)).await?
     };

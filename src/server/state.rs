@@ -5,10 +5,12 @@ use super::config::ServerConfig;
 use super::limits::WorkPool;
 use super::metrics as m;
 use super::problem::ApiError;
-use crate::index::scan::{by_score, Scored};
 use crate::index::{Engine, Inserted, ScanIndex, ShapeRecord, Store};
 use crate::mesh::read::{detect_format, read_mesh, Format, ReadLimits};
 use crate::pipeline::analyze;
+use crate::rerank::{
+    compute_payload, Candidate, Fusion, GwOptions, GwPayload, PayloadSpec, SgwStage,
+};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
@@ -59,6 +61,8 @@ pub struct Timings {
     pub eigensolve_ms: f64,
     /// Signature computation.
     pub signature_ms: f64,
+    /// Re-ranking payload (farthest-point samples and their diffusion distances).
+    pub payload_ms: f64,
     /// Transaction + flush (ingest only).
     pub store_ms: f64,
     /// Everything, including waiting for a worker.
@@ -91,8 +95,11 @@ pub struct IngestResult {
     pub timings: Option<Timings>,
 }
 
-/// One rerank stage of a search. Tagged by `stage`; future stages (e.g. spectral
-/// Gromov–Wasserstein) are new variants with their own fields.
+/// Most candidates a spectral Gromov–Wasserstein stage re-scores (≈ 40 ms of one core each).
+pub const MAX_GW_SHORTLIST: usize = 200;
+
+/// One rerank stage of a search. Tagged by `stage`; each stage is a variant with its own
+/// fields.
 #[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(tag = "stage", rename_all = "snake_case", deny_unknown_fields)]
 pub enum RerankStage {
@@ -106,7 +113,59 @@ pub enum RerankStage {
         #[serde(default)]
         spec: Option<serde_json::Value>,
     },
+    /// Spectral Gromov–Wasserstein re-ranking (paper footnote 2; `crate::rerank`): the best
+    /// `shortlist` candidates of the previous stage are re-scored by the entropic GW
+    /// discrepancy between the query's and each candidate's stored payload (diffusion
+    /// distances on farthest-point samples) and re-sorted (ties keep the previous order).
+    SpectralGw {
+        /// How many candidates to re-score (default 20, at most [`MAX_GW_SHORTLIST`]).
+        #[serde(default)]
+        shortlist: Option<usize>,
+        /// Entropic regularisation relative to the mean cost (default 0.003, in [1e-4, 1]).
+        #[serde(default)]
+        eps_rel: Option<f64>,
+        /// Outer linearisation iterations (default 5, in 1..=20).
+        #[serde(default)]
+        outer_iterations: Option<usize>,
+        /// Weight of the previous stage's rank in a rank blend (`w·rank_prev + (1−w)·rank_gw`,
+        /// in [0, 1]); absent: order by the GW score alone.
+        #[serde(default)]
+        blend: Option<f64>,
+    },
 }
+
+impl RerankStage {
+    /// Its name in `stages` of the answer.
+    pub fn name(&self) -> &'static str {
+        match self {
+            RerankStage::Exact { .. } => "exact",
+            RerankStage::SpectralGw { .. } => "spectral_gw",
+        }
+    }
+
+    /// True when the stage needs the query's re-ranking payload.
+    pub fn needs_payload(&self) -> bool {
+        matches!(self, RerankStage::SpectralGw { .. })
+    }
+}
+
+/// A search candidate between stages (`at`: position in the scan while it is locked).
+struct Entry {
+    at: usize,
+    id: String,
+    name: String,
+    score: f64,
+    stage_scores: Vec<f64>,
+}
+
+/// A validated rerank stage.
+enum Plan<Q> {
+    Exact(usize, Q),
+    Gw(usize, crate::rerank::RerankStage),
+}
+
+/// A query analysed for search-by-example: signature, payload (when a stage needs it), timings.
+pub type QueryAnalysis<S> = (S, Option<GwPayload>, Timings);
 
 /// The search options shared by all ways to give the query.
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -205,13 +264,14 @@ pub fn validate_tags(tags: &[String]) -> Result<(), ApiError> {
 }
 
 impl<E: Engine> App<E> {
-    /// Prepare + spectrum + signature of a parsed mesh, recording the stage timings: the one
-    /// path shared by ingest and search-by-upload.
+    /// Prepare + spectrum + signature (+ re-ranking payload when `with_payload`) of a parsed
+    /// mesh, recording the stage timings: the one path shared by ingest and search-by-upload.
     fn analyze_and_sign(
         &self,
         mesh: &crate::mesh::Mesh,
         t: &mut Timings,
-    ) -> Result<(crate::pipeline::Analysis, E::Signature), ApiError> {
+        with_payload: bool,
+    ) -> Result<(crate::pipeline::Analysis, E::Signature, Option<GwPayload>), ApiError> {
         let analysis = analyze(mesh, &self.engine.analyze_options())?;
         t.prepare_ms = analysis.timings.prepare_ms;
         t.laplacian_ms = analysis.timings.laplacian_ms;
@@ -220,7 +280,15 @@ impl<E: Engine> App<E> {
         let t2 = Instant::now();
         let sig = self.engine.compute(&analysis)?;
         t.signature_ms = ms(t2);
-        Ok((analysis, sig))
+        let payload = if with_payload {
+            let t3 = Instant::now();
+            let p = compute_payload(&analysis, &PayloadSpec::default())?;
+            t.payload_ms = ms(t3);
+            Some(p)
+        } else {
+            None
+        };
+        Ok((analysis, sig, payload))
     }
 
     /// Opens the store, recomputes stale signatures, calibrates if needed, builds the scan.
@@ -257,6 +325,9 @@ impl<E: Engine> App<E> {
                     let sig = engine.compute(&analysis)?;
                     rec.spec_key = spec_key.clone();
                     store.replace_signature(&rec, &engine.encode_signature(&sig))?;
+                    // The payload depends on the same analysis (eigenpairs): refresh it too.
+                    let payload = compute_payload(&analysis, &PayloadSpec::default())?;
+                    store.set_payload(&rec.id, &payload.to_bytes())?;
                     recomputed += 1;
                     sig
                 }
@@ -328,6 +399,16 @@ impl<E: Engine> App<E> {
         metrics::gauge!("shapeseek_index_bytes").set(self.store.size_on_disk() as f64);
     }
 
+    /// The stored re-ranking payload of a shape (`None` when it has none).
+    fn stored_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
+        match self.store.payload(id).map_err(storage)? {
+            None => Ok(None),
+            Some(b) => GwPayload::from_bytes(&b).map(Some).map_err(|e| {
+                ApiError::internal(format!("stored payload of {id} is unreadable: {e}"))
+            }),
+        }
+    }
+
     /// Current calibration epoch (0 = none yet).
     pub fn epoch(&self) -> u64 {
         let s = self.scan.read().unwrap_or_else(|p| p.into_inner());
@@ -384,7 +465,8 @@ impl<E: Engine> App<E> {
         let mesh = read_mesh(&up.bytes, Some(format), &self.limits)?;
         t.read_ms = ms(t1);
         let area = mesh.area();
-        let (analysis, sig) = self.analyze_and_sign(&mesh, &mut t)?;
+        let (analysis, sig, payload) = self.analyze_and_sign(&mesh, &mut t, true)?;
+        let payload = payload.map(|p| p.to_bytes());
         let t3 = Instant::now();
         let id = self.store.new_id().map_err(storage)?;
         let record = ShapeRecord {
@@ -405,7 +487,7 @@ impl<E: Engine> App<E> {
         let sig_bytes = self.engine.encode_signature(&sig);
         let outcome = self
             .store
-            .insert(&record, &digest, &sig_bytes, &up.bytes)
+            .insert(&record, &digest, &sig_bytes, &up.bytes, payload.as_deref())
             .map_err(storage)?;
         let id = match outcome {
             Inserted::Existing(id) => {
@@ -435,6 +517,7 @@ impl<E: Engine> App<E> {
             ("factorization", t.factorization_ms),
             ("eigensolve", t.eigensolve_ms),
             ("signature", t.signature_ms),
+            ("payload", t.payload_ms),
             ("store", t.store_ms),
         ] {
             m::stage(stage, v);
@@ -563,22 +646,24 @@ impl<E: Engine> App<E> {
         Ok((q, v))
     }
 
-    /// Analyses an uploaded query mesh on the pool (nothing is stored).
+    /// Analyses an uploaded query mesh on the pool (nothing is stored); the re-ranking
+    /// payload is computed when `with_payload`.
     pub async fn analyze_query(
         self: &Arc<Self>,
         up: Upload,
-    ) -> Result<(E::Signature, Timings), ApiError> {
+        with_payload: bool,
+    ) -> Result<QueryAnalysis<E::Signature>, ApiError> {
         let app = self.clone();
         let t0 = Instant::now();
         self.pool
-            .run(move || -> Result<(E::Signature, Timings), ApiError> {
+            .run(move || -> Result<QueryAnalysis<E::Signature>, ApiError> {
                 let mut t = Timings::default();
                 let t1 = Instant::now();
                 let mesh = read_mesh(&up.bytes, up.hint, &app.limits)?;
                 t.read_ms = ms(t1);
-                let (_, sig) = app.analyze_and_sign(&mesh, &mut t)?;
+                let (_, sig, payload) = app.analyze_and_sign(&mesh, &mut t, with_payload)?;
                 t.total_ms = ms(t0);
-                Ok((sig, t))
+                Ok((sig, payload, t))
             })
             .await?
     }
@@ -587,7 +672,7 @@ impl<E: Engine> App<E> {
     pub async fn search(
         self: &Arc<Self>,
         opts: SearchOptions,
-        query_sig: Option<(E::Signature, Timings)>,
+        query_sig: Option<QueryAnalysis<E::Signature>>,
     ) -> Result<SearchResult, ApiError> {
         let t0 = Instant::now();
         let top_k = opts.top_k.unwrap_or(10);
@@ -612,16 +697,25 @@ impl<E: Engine> App<E> {
                         )));
                     }
                     let (q, _) = self.query_spec(&spec_json, s.as_ref())?;
-                    stages.push((n, q));
+                    stages.push(Plan::Exact(n, q));
+                }
+                RerankStage::SpectralGw {
+                    shortlist,
+                    eps_rel,
+                    outer_iterations,
+                    blend,
+                } => {
+                    let st = gw_stage(*shortlist, *eps_rel, *outer_iterations, *blend)?;
+                    stages.push(Plan::Gw(st.shortlist_len(), st));
                 }
             }
         }
         if opts.rerank.len() > 8 {
             return Err(ApiError::invalid("at most 8 rerank stages"));
         }
-        let (query_sig, analysis_t) = match query_sig {
-            Some((s, t)) => (Some(Arc::new(s)), Some(t)),
-            None => (None, None),
+        let (query_sig, upload_payload, analysis_t) = match query_sig {
+            Some((s, p, t)) => (Some(Arc::new(s)), p, Some(t)),
+            None => (None, None, None),
         };
         if query_sig.is_none() && opts.id.is_none() {
             return Err(ApiError::invalid(
@@ -630,64 +724,148 @@ impl<E: Engine> App<E> {
         }
         let app = self.clone();
         let stage_names: Vec<String> = std::iter::once("scan".to_string())
-            .chain(opts.rerank.iter().map(|s| match s {
-                RerankStage::Exact { .. } => "exact".to_string(),
-            }))
+            .chain(opts.rerank.iter().map(|s| s.name().to_string()))
             .collect();
+        let needs_payload = opts.rerank.iter().any(RerankStage::needs_payload);
         let (hits, epoch, candidates, scan_ms, rerank_ms) =
             tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
-                let scan = app.scan.read().unwrap_or_else(|p| p.into_inner());
-                let Some(cal) = scan.calibration().cloned() else {
+                let read = || app.scan.read().unwrap_or_else(|p| p.into_inner());
+                let mut scan = Some(read());
+                let s = scan.as_ref().expect("locked");
+                let Some(cal) = s.calibration().cloned() else {
                     if let Some(id) = &opts.id {
                         return Err(ApiError::not_found(id));
                     }
                     return Ok((Vec::new(), 0, 0, 0.0, 0.0));
                 };
                 let epoch = app.engine.calibration_epoch(&cal);
-                let uploaded = query_sig.as_ref().map(|s| app.engine.prepare(s, &cal));
-                let (query, self_at) = match (&uploaded, &opts.id) {
-                    (Some(p), _) => (p, None),
+                let query: Arc<E::Prepared> = match (&query_sig, &opts.id) {
+                    (Some(sig), _) => Arc::new(app.engine.prepare(sig, &cal)),
                     (None, Some(id)) => {
-                        let at = scan.position(id).ok_or_else(|| ApiError::not_found(id))?;
-                        (&scan.prepared()[at], Some(at))
+                        let at = s.position(id).ok_or_else(|| ApiError::not_found(id))?;
+                        Arc::new(s.prepared()[at].clone())
                     }
                     (None, None) => return Err(ApiError::invalid("no query given")),
                 };
+                let self_at = if query_sig.is_none() {
+                    opts.id.as_deref().and_then(|id| s.position(id))
+                } else {
+                    None
+                };
+                let query_payload = match (&upload_payload, &opts.id) {
+                    _ if !needs_payload => None,
+                    (Some(p), _) => Some(p.clone()),
+                    (None, Some(id)) => Some(app.stored_payload(id)?.ok_or_else(|| {
+                        ApiError::new(
+                            axum::http::StatusCode::CONFLICT,
+                            "shape.no_payload",
+                            format!(
+                                "shape {id} has no re-ranking payload (its original could not \
+                                 be analysed when the payloads were computed)"
+                            ),
+                        )
+                    })?),
+                    (None, None) => None,
+                };
                 let exclude = if opts.include_self { None } else { self_at };
                 let tags = &opts.tags;
-                let keep = |at: usize| {
-                    Some(at) != exclude && tags.iter().all(|t| scan.tags(at).contains(t))
-                };
-                let candidates = (0..scan.len()).filter(|&at| keep(at)).count();
-                let first_k = stages.iter().map(|(n, _)| *n).max().unwrap_or(0).max(top_k);
+                let keep =
+                    |at: usize| Some(at) != exclude && tags.iter().all(|t| s.tags(at).contains(t));
+                let candidates = (0..s.len()).filter(|&at| keep(at)).count();
+                let first_k = stages
+                    .iter()
+                    .map(|p| match p {
+                        Plan::Exact(n, _) | Plan::Gw(n, _) => *n,
+                    })
+                    .max()
+                    .unwrap_or(0)
+                    .max(top_k);
                 let t1 = Instant::now();
-                let mut list: Vec<(Scored, Vec<f64>)> = scan
-                    .rank(&app.engine, query, &spec, first_k, &keep)
+                let mut list: Vec<Entry> = s
+                    .rank(&app.engine, &query, &spec, first_k, &keep)
                     .into_iter()
-                    .map(|s| (s, vec![s.score]))
+                    .map(|sc| Entry {
+                        at: sc.at,
+                        id: s.id(sc.at).to_string(),
+                        name: s.name(sc.at).to_string(),
+                        score: sc.score,
+                        stage_scores: vec![sc.score],
+                    })
                     .collect();
                 let scan_ms = ms(t1);
                 let t2 = Instant::now();
-                for (n, q) in &stages {
-                    list.truncate(*n);
-                    for (s, scores) in list.iter_mut() {
-                        s.score = app.engine.score(query, &scan.prepared()[s.at], q);
-                        scores.push(s.score);
+                for plan in &stages {
+                    match plan {
+                        Plan::Exact(n, q) => {
+                            list.truncate(*n);
+                            if scan.is_none() {
+                                // Re-locked after a stage that ran unlocked: positions may have
+                                // moved; shapes deleted meanwhile leave the list.
+                                let s = scan.insert(read());
+                                list.retain_mut(|e| match s.position(&e.id) {
+                                    Some(at) => {
+                                        e.at = at;
+                                        true
+                                    }
+                                    None => false,
+                                });
+                            }
+                            let s = scan.as_ref().expect("locked");
+                            for e in list.iter_mut() {
+                                e.score = app.engine.score(&query, &s.prepared()[e.at], q);
+                                e.stage_scores.push(e.score);
+                            }
+                            list.sort_by(|a, b| a.score.total_cmp(&b.score).then(a.at.cmp(&b.at)));
+                        }
+                        Plan::Gw(n, stage) => {
+                            list.truncate(*n);
+                            // The solves take up to seconds: not under the scan lock (it would
+                            // hold back writers, and readers queued behind them).
+                            scan = None;
+                            let Some(qp) = &query_payload else {
+                                return Err(ApiError::internal("no query payload"));
+                            };
+                            let payloads: Vec<Option<GwPayload>> = list
+                                .iter()
+                                .map(|e| app.stored_payload(&e.id))
+                                .collect::<Result<_, _>>()?;
+                            let shortlist: Vec<Candidate<'_, usize>> = list
+                                .iter()
+                                .zip(&payloads)
+                                .enumerate()
+                                .map(|(i, (e, p))| Candidate {
+                                    id: i,
+                                    score: e.score,
+                                    payload: p.as_ref(),
+                                })
+                                .collect();
+                            let order = crate::rerank::apply(stage, qp, &shortlist);
+                            let mut old: Vec<Option<Entry>> = list.into_iter().map(Some).collect();
+                            list = order
+                                .into_iter()
+                                .filter_map(|(i, score)| {
+                                    let mut e = old[i].take()?;
+                                    e.score = score;
+                                    e.stage_scores.push(score);
+                                    Some(e)
+                                })
+                                .collect();
+                        }
                     }
-                    list.sort_by(|a, b| by_score(&a.0, &b.0));
                 }
+                drop(scan);
                 let rerank_ms = ms(t2);
                 list.truncate(top_k);
                 let hits: Vec<Hit> = list
                     .into_iter()
                     .enumerate()
-                    .map(|(r, (s, stage_scores))| Hit {
-                        id: scan.id(s.at).to_string(),
-                        name: scan.name(s.at).to_string(),
-                        score: s.score,
+                    .map(|(r, e)| Hit {
+                        id: e.id,
+                        name: e.name,
+                        score: e.score,
                         rank: r + 1,
                         calibration_epoch: epoch,
-                        stage_scores,
+                        stage_scores: e.stage_scores,
                     })
                     .collect();
                 Ok((hits, epoch, candidates, scan_ms, rerank_ms))
@@ -708,6 +886,50 @@ impl<E: Engine> App<E> {
             },
         })
     }
+}
+
+/// Validates the fields of a spectral-GW stage into the library's stage.
+fn gw_stage(
+    shortlist: Option<usize>,
+    eps_rel: Option<f64>,
+    outer_iterations: Option<usize>,
+    blend: Option<f64>,
+) -> Result<crate::rerank::RerankStage, ApiError> {
+    let defaults = SgwStage::default();
+    let n = shortlist.unwrap_or(defaults.shortlist);
+    if n == 0 || n > MAX_GW_SHORTLIST {
+        return Err(ApiError::invalid(format!(
+            "spectral_gw shortlist must be in 1..={MAX_GW_SHORTLIST}"
+        )));
+    }
+    let mut gw = GwOptions::default();
+    if let Some(e) = eps_rel {
+        if !(1e-4..=1.0).contains(&e) {
+            return Err(ApiError::invalid(
+                "spectral_gw eps_rel must be in [1e-4, 1]",
+            ));
+        }
+        gw.eps_rel = e;
+    }
+    if let Some(o) = outer_iterations {
+        if !(1..=20).contains(&o) {
+            return Err(ApiError::invalid(
+                "spectral_gw outer_iterations must be in 1..=20",
+            ));
+        }
+        gw.outer_iterations = o;
+    }
+    let fusion = match blend {
+        None => Fusion::Replace,
+        Some(w) if (0.0..=1.0).contains(&w) => Fusion::RankBlend { weight: w },
+        Some(_) => return Err(ApiError::invalid("spectral_gw blend must be in [0, 1]")),
+    };
+    Ok(crate::rerank::RerankStage::SpectralGw(SgwStage {
+        shortlist: n,
+        payload: PayloadSpec::default(),
+        gw,
+        fusion,
+    }))
 }
 
 fn moved(calibrated_on: usize, n: usize, fraction: f64) -> bool {
