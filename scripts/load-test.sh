@@ -6,11 +6,13 @@
 #       10 000 vertices, `shapeseek bench meshes`) with PARALLEL (default 2) concurrent curl
 #       uploads into an empty index; prints shapes/s and the server's per-stage ingest times.
 #
-#   scripts/load-test.sh search [N] [REQUESTS] [CONCURRENCY]
+#   scripts/load-test.sh search [N] [REQUESTS] [CONCURRENCY] [RERANK_JSON]
 #       Search latency: writes N (default 100000) synthetic shapes (`shapeseek bench populate`)
 #       into a fresh index, starts the server on it, then runs `hey` (Debian package) with
 #       REQUESTS (default 200) POST /v1/search by id (top_k 10) for each of 8 query ids at
-#       CONCURRENCY (default 1) and prints p50/p90/p99 over all requests.
+#       CONCURRENCY (default 1) and prints p50/p90/p99 over all requests. With RERANK_JSON
+#       (e.g. '[{"stage":"spectral_gw","shortlist":50}]') the shapes get re-ranking payloads
+#       and every search carries those stages.
 #
 # The temporary index is removed at exit. CARGO_TARGET_DIR is honoured.
 set -euo pipefail
@@ -20,7 +22,7 @@ TARGET="${CARGO_TARGET_DIR:-$PWD/target}"
 BIN="$TARGET/release/shapeseek"
 case "$MODE" in
   ingest|search) ;;
-  *) sed -n '2,16p' "$0"; exit 2 ;;
+  *) sed -n '2,17p' "$0"; exit 2 ;;
 esac
 command -v hey >/dev/null || { echo "hey not installed (apt-get install hey)"; exit 1; }
 cargo build --quiet --release --bin shapeseek
@@ -71,17 +73,24 @@ fi
 N="${2:-100000}"
 REQ="${3:-200}"
 CONC="${4:-1}"
-"$BIN" bench populate --data "$WORK/index" --count "$N"
+RERANK="${5:-}"
+if [ -n "$RERANK" ]; then
+  "$BIN" bench populate --data "$WORK/index" --count "$N" --payloads
+  EXTRA=",\"rerank\":$RERANK"
+else
+  "$BIN" bench populate --data "$WORK/index" --count "$N"
+  EXTRA=""
+fi
 start_server
 IDS=$(curl -s "$URL/v1/shapes?limit=100" | python3 -c '
 import json, sys
 items = json.load(sys.stdin)["items"]
 print(" ".join(items[i]["id"] for i in range(0, len(items), max(1, len(items) // 8))[:8]))')
-echo "search by id: $REQ requests for each of 8 ids, concurrency $CONC, index of $N shapes"
+echo "search by id: $REQ requests for each of 8 ids, concurrency $CONC, index of $N shapes${RERANK:+, rerank $RERANK}"
 : > "$WORK/times.csv"
 for ID in $IDS; do
   hey -n "$REQ" -c "$CONC" -o csv -m POST -T application/json \
-    -d "{\"id\":\"$ID\",\"top_k\":10}" "$URL/v1/search" | tail -n +2 >> "$WORK/times.csv"
+    -d "{\"id\":\"$ID\",\"top_k\":10$EXTRA}" "$URL/v1/search" | tail -n +2 >> "$WORK/times.csv"
 done
 python3 - "$WORK/times.csv" <<'EOF'
 import sys

@@ -64,6 +64,10 @@ struct PopulateBench {
     /// 12-vertex OBJ with a unique comment (tagged `synthetic`).
     #[arg(long, default_value_t = 100_000)]
     count: usize,
+    /// Also store each shape's re-ranking payload (its base shape's; about 60 KB each), so
+    /// that spectral-GW stages have work to do.
+    #[arg(long)]
+    payloads: bool,
 }
 
 #[derive(Args)]
@@ -462,13 +466,15 @@ fn unit(i: u64) -> f64 {
     ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
 }
 
-/// `n` synthetic signatures under `spec`: copy `i` of base `i % 24` with every distance
-/// scaled by a factor in [0.95, 1.05] (copies `0..24` are the bases themselves). A query then
-/// has a few thousand same-base neighbours at 10⁵ shapes, most of them close.
-fn synthetic_signatures(spec: &SignatureSpec, n: usize) -> Result<Vec<Signature>> {
+/// The 24 base shapes' signatures under `spec` (and their re-ranking payloads when asked).
+fn synthetic_bases(
+    spec: &SignatureSpec,
+    payloads: bool,
+) -> Result<Vec<(Signature, Option<shapeseek::rerank::GwPayload>)>> {
     use shapeseek::pipeline::{analyze, AnalyzeOptions};
-    use shapeseek::signature::{compute_signature, ChannelValues};
-    let bases: Vec<Signature> = (0..SYNTHETIC_BASES)
+    use shapeseek::rerank::{compute_payload, PayloadSpec};
+    use shapeseek::signature::compute_signature;
+    (0..SYNTHETIC_BASES)
         .into_par_iter()
         .map(|j| {
             let mut m = if j % 2 == 0 {
@@ -485,23 +491,34 @@ fn synthetic_signatures(spec: &SignatureSpec, n: usize) -> Result<Vec<Signature>
                 *v = [v[0] * s[0], v[1] * s[1], v[2] * s[2]];
             }
             let a = analyze(&m, &AnalyzeOptions::default())?;
-            compute_signature(&a, spec)
+            let p = if payloads {
+                Some(compute_payload(&a, &PayloadSpec::default())?)
+            } else {
+                None
+            };
+            Ok((compute_signature(&a, spec)?, p))
         })
-        .collect::<Result<_>>()?;
-    Ok((0..n)
-        .map(|i| {
-            let mut sig = bases[i % SYNTHETIC_BASES].clone();
-            if i >= SYNTHETIC_BASES {
-                let f = 0.95 + 0.1 * unit(i as u64);
-                for c in &mut sig.channels {
-                    if let ChannelValues::Distribution(q) = &mut c.values {
-                        q.quantiles.iter_mut().for_each(|x| *x *= f);
-                    }
-                }
+        .collect()
+}
+
+/// Synthetic signature `i` from the bases: base `i % 24` with every distance scaled by a
+/// factor in [0.95, 1.05] (copies `0..24` are the bases themselves). A query then has a few
+/// thousand same-base neighbours at 10⁵ shapes, most of them close.
+fn synthetic_signature(
+    bases: &[(Signature, Option<shapeseek::rerank::GwPayload>)],
+    i: usize,
+) -> Signature {
+    use shapeseek::signature::ChannelValues;
+    let mut sig = bases[i % bases.len()].0.clone();
+    if i >= bases.len() {
+        let f = 0.95 + 0.1 * unit(i as u64);
+        for c in &mut sig.channels {
+            if let ChannelValues::Distribution(q) = &mut c.values {
+                q.quantiles.iter_mut().for_each(|x| *x *= f);
             }
-            sig
-        })
-        .collect())
+        }
+    }
+    sig
 }
 
 fn run_search(b: &SearchBench) -> Result<()> {
@@ -509,7 +526,8 @@ fn run_search(b: &SearchBench) -> Result<()> {
     use shapeseek::topk::BoundTable;
     let cfg = default_config();
     let max = b.sizes.iter().copied().max().unwrap_or(0);
-    let sigs = synthetic_signatures(&cfg.signature, max)?;
+    let bases = synthetic_bases(&cfg.signature, false)?;
+    let sigs: Vec<Signature> = (0..max).map(|i| synthetic_signature(&bases, i)).collect();
     println!(
         "config `{}`, top {}, {} queries per size, rayon threads {}; reference = the full \
          ranking (every candidate scored, sorted) on the same queries",
@@ -577,17 +595,22 @@ fn run_populate(b: &PopulateBench) -> Result<()> {
     let engine = FwEngine::new();
     let store = Store::open(&b.data)?;
     let t0 = Instant::now();
-    let sigs = synthetic_signatures(&engine.config.signature, b.count)?;
+    let bases = synthetic_bases(&engine.config.signature, b.payloads)?;
+    let payloads: Vec<Option<Vec<u8>>> = bases
+        .iter()
+        .map(|(_, p)| p.as_ref().map(|p| p.to_bytes()))
+        .collect();
     let tiny = generate::icosphere(0);
     let (_, report) = prepare(&tiny, &PrepareOptions::default())?;
     let mut obj = Vec::new();
     write_obj(&tiny, &mut obj)?;
     let spec_key = engine.spec_key();
     let mut written = 0usize;
-    for chunk in sigs.chunks(5000) {
-        let mut items = Vec::with_capacity(chunk.len());
-        for sig in chunk {
-            let i = written + items.len();
+    while written < b.count {
+        let chunk = (b.count - written).min(5000);
+        let mut items = Vec::with_capacity(chunk);
+        for i in written..written + chunk {
+            let sig = &synthetic_signature(&bases, i);
             let mut original = format!("# shapeseek synthetic shape {i}\n").into_bytes();
             original.extend_from_slice(&obj);
             let sha256: [u8; 32] = Sha256::digest(&original).into();
@@ -611,8 +634,9 @@ fn run_populate(b: &PopulateBench) -> Result<()> {
                 sha256,
                 signature: engine.encode_signature(sig),
                 original,
-                // No re-ranking payload: a spectral-GW stage ranks these after real shapes.
-                payload: None,
+                // The base shape's payload (`--payloads`), else none: a spectral-GW stage
+                // then ranks these after shapes that have one.
+                payload: payloads[i % SYNTHETIC_BASES].clone(),
             });
         }
         store.insert_batch(&items)?;
