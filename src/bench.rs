@@ -52,6 +52,10 @@ struct SearchBench {
     /// Hits per query.
     #[arg(long, default_value_t = 10)]
     top_k: usize,
+    /// Dissimilarity instead of the default configuration's (API names: `n_l1`, `emd`, `l2`,
+    /// `chi2`, ...).
+    #[arg(long)]
+    dissimilarity: Option<String>,
 }
 
 #[derive(Args)]
@@ -524,14 +528,19 @@ fn synthetic_signature(
 fn run_search(b: &SearchBench) -> Result<()> {
     use shapeseek::ranking::{calibrate, default_config, prepare_for_ranking, rank};
     use shapeseek::topk::BoundTable;
-    let cfg = default_config();
+    let mut cfg = default_config();
+    if let Some(d) = &b.dissimilarity {
+        cfg.query.dissimilarity = serde_json::from_value(serde_json::Value::String(d.clone()))
+            .map_err(|e| Error::InvalidArgument(format!("--dissimilarity {d}: {e}")))?;
+    }
     let max = b.sizes.iter().copied().max().unwrap_or(0);
     let bases = synthetic_bases(&cfg.signature, false)?;
     let sigs: Vec<Signature> = (0..max).map(|i| synthetic_signature(&bases, i)).collect();
     println!(
-        "config `{}`, top {}, {} queries per size, rayon threads {}; reference = the full \
-         ranking (every candidate scored, sorted) on the same queries",
+        "config `{}` ({:?}), top {}, {} queries per size, rayon threads {}; reference = the \
+         full ranking (every candidate scored, sorted) on the same queries",
         cfg.name,
+        cfg.query.dissimilarity,
         b.top_k,
         b.queries,
         rayon::current_num_threads()
