@@ -726,6 +726,19 @@ fn validate_spec(spec: &SignatureSpec) -> Result<()> {
         return bad("lp_samples and geodesic_sources must be ≥ 1".into());
     }
     let check_t = |t: f64| t.is_finite() && t > 0.0;
+    match spec.spectrum_scaling {
+        crate::scale::SpectrumScaling::Lambda1 { reference } if !check_t(reference) => {
+            return bad(format!(
+                "spectrum_scaling: reference must be finite and > 0, got {reference}"
+            ));
+        }
+        crate::scale::SpectrumScaling::WeylFit {
+            eigenpairs: Some(m),
+        } if m < 2 => {
+            return bad(format!("spectrum_scaling: eigenpairs must be ≥ 2, got {m}"));
+        }
+        _ => {}
+    }
     for c in &spec.channels {
         let ok = match &c.kind {
             ChannelKind::Spectral { kernel, .. } => match kernel {
