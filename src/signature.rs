@@ -236,6 +236,15 @@ pub enum ChannelKind {
         /// Number of eigenvalues.
         count: usize,
     },
+    /// Truncated distance range of another distribution channel: only its pairs closer than
+    /// `radius` (unit-area units; mass beyond is left out). Calibrated and histogrammed as a
+    /// channel of its own, so it gets its own window on the short range.
+    Truncated {
+        /// The distribution channel (not ShapeDNA, not truncated).
+        channel: Box<ChannelKind>,
+        /// Pairs farther apart are left out.
+        radius: f64,
+    },
 }
 
 /// One channel of a [`SignatureSpec`].
@@ -315,7 +324,7 @@ impl ChannelSpec {
 
     /// Stable, human-readable name, e.g. `heat-l2[t=0.016]`, `ct-l2`, `step-l2[lc=4pi*10]`,
     /// `heat-l2-ksum[t=0.016,0.04]`, `heat-l2-dmax[...]`, `heat-l2-fsum[...]`, `geo`,
-    /// `geo[r=0.5]`, `d2[n=2000]`, `shapedna[50]`.
+    /// `geo[r=0.5]`, `d2[n=2000]`, `shapedna[50]`, `heat-l2[t=0.016][r=2.44]` (truncated).
     pub fn name(&self) -> String {
         match &self.kind {
             ChannelKind::Spectral { kernel, norm } => {
@@ -352,6 +361,20 @@ impl ChannelSpec {
             },
             ChannelKind::EuclideanD2 { samples } => format!("d2[n={samples}]"),
             ChannelKind::ShapeDna { count } => format!("shapedna[{count}]"),
+            ChannelKind::Truncated { channel, radius } => {
+                let inner = ChannelSpec {
+                    kind: (**channel).clone(),
+                };
+                format!("{}[r={radius}]", inner.name())
+            }
+        }
+    }
+
+    /// The channel whose distances are computed (the inner channel of a truncated one).
+    fn base_kind(&self) -> &ChannelKind {
+        match &self.kind {
+            ChannelKind::Truncated { channel, .. } => channel,
+            k => k,
         }
     }
 }
@@ -549,7 +572,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
     let mut need_lp = false;
     let mut need_geo = false;
     for c in &spec.channels {
-        match &c.kind {
+        match c.base_kind() {
             ChannelKind::Spectral { norm, .. }
             | ChannelKind::DistanceAggregate { norm, .. }
             | ChannelKind::DistributionSum { norm, .. } => {
@@ -568,7 +591,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                     )));
                 }
             }
-            ChannelKind::EuclideanD2 { .. } => {}
+            ChannelKind::EuclideanD2 { .. } | ChannelKind::Truncated { .. } => {}
         }
     }
     let l2_samples = match spec.quadrature {
@@ -649,11 +672,18 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
     };
     let q = ctx.q;
 
-    let channels: Vec<Result<ChannelData>> = spec
-        .channels
+    // Distinct base channels, each computed once: a truncated channel reuses the distances of
+    // its full channel when both are in the spec.
+    let mut bases: Vec<&ChannelKind> = Vec::new();
+    for c in &spec.channels {
+        if !bases.contains(&c.base_kind()) {
+            bases.push(c.base_kind());
+        }
+    }
+    let base_values: Vec<Result<ChannelValues>> = bases
         .par_iter()
-        .map(|c| {
-            let values = match &c.kind {
+        .map(|&kind| {
+            Ok(match kind {
                 ChannelKind::Spectral { kernel, norm } => {
                     let w = vec![transfer_weights(kernel, &sp.eigenvalues, zero_tol)];
                     spectral_channel(&w, *norm, PairMode::Single, &ctx)
@@ -690,14 +720,33 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                         .map(|&i| sp.eigenvalues[i])
                         .collect(),
                 ),
-            };
-            Ok(ChannelData {
-                name: c.name(),
-                values,
+                ChannelKind::Truncated { .. } => {
+                    return Err(Error::InvalidArgument("nested truncated channel".into()))
+                }
             })
         })
         .collect();
-    let channels = channels.into_iter().collect::<Result<Vec<_>>>()?;
+    let base_values = base_values.into_iter().collect::<Result<Vec<_>>>()?;
+    let channels: Vec<ChannelData> = spec
+        .channels
+        .iter()
+        .map(|c| {
+            let b = bases
+                .iter()
+                .position(|&k| k == c.base_kind())
+                .expect("every base kind listed");
+            let values = match (&c.kind, &base_values[b]) {
+                (ChannelKind::Truncated { radius, .. }, ChannelValues::Distribution(d)) => {
+                    ChannelValues::Distribution(truncate_sketch(d, *radius))
+                }
+                (_, v) => v.clone(),
+            };
+            ChannelData {
+                name: c.name(),
+                values,
+            }
+        })
+        .collect();
     Ok(Signature {
         spec_key: spec.key(),
         channels,
@@ -726,8 +775,31 @@ fn validate_spec(spec: &SignatureSpec) -> Result<()> {
         return bad("lp_samples and geodesic_sources must be ≥ 1".into());
     }
     let check_t = |t: f64| t.is_finite() && t > 0.0;
+    match spec.spectrum_scaling {
+        crate::scale::SpectrumScaling::Lambda1 { reference } if !check_t(reference) => {
+            return bad(format!(
+                "spectrum_scaling: reference must be finite and > 0, got {reference}"
+            ));
+        }
+        crate::scale::SpectrumScaling::WeylFit {
+            eigenpairs: Some(m),
+        } if m < 2 => {
+            return bad(format!("spectrum_scaling: eigenpairs must be ≥ 2, got {m}"));
+        }
+        _ => {}
+    }
     for c in &spec.channels {
-        let ok = match &c.kind {
+        if let ChannelKind::Truncated { channel, radius } = &c.kind {
+            if !(radius.is_finite() && *radius > 0.0)
+                || matches!(
+                    **channel,
+                    ChannelKind::Truncated { .. } | ChannelKind::ShapeDna { .. }
+                )
+            {
+                return bad(format!("invalid channel {}", c.name()));
+            }
+        }
+        let ok = match c.base_kind() {
             ChannelKind::Spectral { kernel, .. } => match kernel {
                 Kernel::Heat { t } => check_t(*t),
                 Kernel::CommuteTime => true,
@@ -742,12 +814,48 @@ fn validate_spec(spec: &SignatureSpec) -> Result<()> {
             ChannelKind::Geodesic { radius } => radius.is_none_or(|r| r.is_finite() && r > 0.0),
             ChannelKind::EuclideanD2 { samples } => *samples >= 2 && *samples <= 100_000,
             ChannelKind::ShapeDna { count } => *count >= 1,
+            ChannelKind::Truncated { .. } => false,
         };
         if !ok {
             return bad(format!("invalid channel {}", c.name()));
         }
     }
     Ok(())
+}
+
+/// The part of `s` below `r`: mass `F(r)`, quantiles of the restricted piecewise-linear CDF at
+/// the same number of levels (empty, mass 0, when every distance is ≥ `r`).
+pub fn truncate_sketch(s: &QuantileSketch, r: f64) -> QuantileSketch {
+    let qs = &s.quantiles;
+    let nq = qs.len().saturating_sub(1);
+    if nq == 0 || qs[nq] <= r {
+        return s.clone();
+    }
+    if qs[0] >= r {
+        return QuantileSketch {
+            mass: 0.0,
+            quantiles: vec![r; nq + 1],
+        };
+    }
+    // qs[j] < r < qs[j + 1] (j < nq since qs[nq] > r).
+    let j = qs.partition_point(|&x| x < r) - 1;
+    let frac = (r - qs[j]) / (qs[j + 1] - qs[j]);
+    let p = (j as f64 + frac) / nq as f64;
+    let quantiles = (0..=nq)
+        .map(|i| {
+            if i == nq {
+                return r;
+            }
+            let u = p * i as f64;
+            let k = (u.floor() as usize).min(nq - 1);
+            let f = u - k as f64;
+            qs[k] + f * (qs[k + 1] - qs[k])
+        })
+        .collect();
+    QuantileSketch {
+        mass: s.mass * p,
+        quantiles,
+    }
 }
 
 /// `K(λ_i)` of `kernel` for every eigenvalue, 0 on zero modes.

@@ -601,6 +601,78 @@ fn invalid_specs_are_errors() {
     assert!(compute_signature(&a, &spec).is_err());
 }
 
+/// A truncated channel is the short range of its full channel: half the mass at the median,
+/// the lower half of the quantiles, the same normalised histogram on `[0, r]`; computed once
+/// beside its full channel or alone, with the same values.
+#[test]
+fn truncated_channel_is_the_short_range_of_the_full_one() {
+    let a = analysis_of(&generate::bumpy_torus(40, 20), 60, true);
+    let full = ChannelSpec::heat(0.04, Norm::L2);
+    let sig_full =
+        compute_signature(&a, &SignatureSpec::with_channels(vec![full.clone()])).unwrap();
+    let s = sketch_of(&sig_full, 0).clone();
+    let nq = s.quantiles.len() - 1;
+    let r = s.quantiles[nq / 2];
+    let tr = ChannelSpec {
+        kind: ChannelKind::Truncated {
+            channel: Box::new(full.kind.clone()),
+            radius: r,
+        },
+    };
+    assert_eq!(tr.name(), format!("heat-l2[t=0.04][r={r}]"));
+    let alone = compute_signature(&a, &SignatureSpec::with_channels(vec![tr.clone()])).unwrap();
+    let both = compute_signature(
+        &a,
+        &SignatureSpec::with_channels(vec![full.clone(), tr.clone()]),
+    )
+    .unwrap();
+    assert_eq!(both.channels[0], sig_full.channels[0]);
+    assert_eq!(both.channels[1], alone.channels[0]);
+    assert_eq!(alone.channels[0].name, tr.name());
+
+    let t = sketch_of(&alone, 0);
+    assert_eq!(t.quantiles.len(), nq + 1);
+    assert!((t.mass / s.mass - 0.5).abs() < 1e-9, "{}", t.mass / s.mass);
+    assert_eq!(t.quantiles[nq], r);
+    for i in 0..=nq / 2 {
+        assert!(
+            (t.quantiles[2 * i] - s.quantiles[i]).abs() <= 1e-9 * r,
+            "level {i}"
+        );
+    }
+    let (hf, ht) = (hist(&s, r), hist(t, r));
+    let e = nl1(&hf.density, &ht.density);
+    assert!(e < 1e-3, "nL1 on [0, r] {e}");
+
+    let top = s.quantiles[nq];
+    assert_eq!(truncate_sketch(&s, 2.0 * top), s);
+    let empty = truncate_sketch(&s, 0.5 * s.quantiles[0]);
+    assert_eq!(empty.mass, 0.0);
+
+    for bad in [
+        ChannelKind::Truncated {
+            channel: Box::new(full.kind.clone()),
+            radius: 0.0,
+        },
+        ChannelKind::Truncated {
+            channel: Box::new(tr.kind.clone()),
+            radius: r,
+        },
+        ChannelKind::Truncated {
+            channel: Box::new(ChannelSpec::shape_dna(10).kind),
+            radius: r,
+        },
+    ] {
+        let c = ChannelSpec { kind: bad };
+        let res = compute_signature(&a, &SignatureSpec::with_channels(vec![c.clone()]));
+        assert!(
+            matches!(res, Err(Error::InvalidArgument(_))),
+            "{} accepted",
+            c.name()
+        );
+    }
+}
+
 /// Two components: both zero modes get weight 0 and the distributions stay finite.
 #[test]
 fn two_components_have_two_zero_modes() {
