@@ -6,9 +6,10 @@
 #       10 000 vertices, `shapeseek bench meshes`) with PARALLEL (default 2) concurrent curl
 #       uploads into an empty index; prints shapes/s and the server's per-stage ingest times.
 #
-#   scripts/load-test.sh search [N] [REQUESTS] [CONCURRENCY] [RERANK_JSON]
+#   scripts/load-test.sh search [N|MESH_DIR] [REQUESTS] [CONCURRENCY] [RERANK_JSON]
 #       Search latency: writes N (default 100000) synthetic shapes (`shapeseek bench populate`)
-#       into a fresh index, starts the server on it, then runs `hey` (Debian package) with
+#       into a fresh index (or, given a directory, ingests its meshes over HTTP, 2 at a time),
+#       starts the server on it, then runs `hey` (Debian package) with
 #       REQUESTS (default 200) POST /v1/search by id (top_k 10) for each of 8 query ids at
 #       CONCURRENCY (default 1) and prints p50/p90/p99 over all requests. With RERANK_JSON
 #       (e.g. '[{"stage":"spectral_gw","shortlist":50}]') the shapes get re-ranking payloads
@@ -22,7 +23,7 @@ TARGET="${CARGO_TARGET_DIR:-$PWD/target}"
 BIN="$TARGET/release/shapeseek"
 case "$MODE" in
   ingest|search) ;;
-  *) sed -n '2,17p' "$0"; exit 2 ;;
+  *) sed -n '2,18p' "$0"; exit 2 ;;
 esac
 command -v hey >/dev/null || { echo "hey not installed (apt-get install hey)"; exit 1; }
 cargo build --quiet --release --bin shapeseek
@@ -74,14 +75,18 @@ N="${2:-100000}"
 REQ="${3:-200}"
 CONC="${4:-1}"
 RERANK="${5:-}"
-if [ -n "$RERANK" ]; then
-  "$BIN" bench populate --data "$WORK/index" --count "$N" --payloads
-  EXTRA=",\"rerank\":$RERANK"
+EXTRA="${RERANK:+,\"rerank\":$RERANK}"
+if [ -d "$N" ]; then
+  start_server
+  ls "$N" | xargs -P 2 -I{} sh -c \
+    "curl -s -o /dev/null -w '%{http_code}\n' --max-time 600 -X POST --data-binary @'$N/{}' '$URL/v1/shapes?name={}'" \
+    > "$WORK/codes"
+  echo "ingested $(ls "$N" | wc -l) meshes from $N: $(sort "$WORK/codes" | uniq -c | tr '\n' ' ')"
+  N=$(ls "$N" | wc -l)
 else
-  "$BIN" bench populate --data "$WORK/index" --count "$N"
-  EXTRA=""
+  "$BIN" bench populate --data "$WORK/index" --count "$N" ${RERANK:+--payloads}
+  start_server
 fi
-start_server
 IDS=$(curl -s "$URL/v1/shapes?limit=100" | python3 -c '
 import json, sys
 items = json.load(sys.stdin)["items"]

@@ -68,8 +68,8 @@ struct PopulateBench {
     /// 12-vertex OBJ with a unique comment (tagged `synthetic`).
     #[arg(long, default_value_t = 100_000)]
     count: usize,
-    /// Also store each shape's re-ranking payload (its base shape's; about 60 KB each), so
-    /// that spectral-GW stages have work to do.
+    /// Also store a re-ranking payload per shape (one of the 24 base shapes' payloads, about
+    /// 60 KB each), so that spectral-GW stages have work to do.
     #[arg(long)]
     payloads: bool,
 }
@@ -643,9 +643,12 @@ fn run_populate(b: &PopulateBench) -> Result<()> {
                 sha256,
                 signature: engine.encode_signature(sig),
                 original,
-                // The base shape's payload (`--payloads`), else none: a spectral-GW stage
-                // then ranks these after shapes that have one.
-                payload: payloads[i % SYNTHETIC_BASES].clone(),
+                // With `--payloads`, a base shape's payload, else none (a spectral-GW stage then
+                // ranks these after shapes that have one). The payload's base is decoupled from
+                // the signature's (`i / 24` vs `i % 24`), so that a shortlist of same-signature
+                // shapes holds different payloads: identical metric spaces would make the GW
+                // solves unrealistically cheap.
+                payload: payloads[(i / SYNTHETIC_BASES) % SYNTHETIC_BASES].clone(),
             });
         }
         store.insert_batch(&items)?;
