@@ -80,6 +80,14 @@ pub struct BatchItem {
     pub payload: Option<Vec<u8>>,
 }
 
+/// The value of `key` in `tree`, copied out.
+fn get_bytes(tree: &sled::Tree, key: &str) -> Result<Option<Vec<u8>>> {
+    Ok(tree
+        .get(key.as_bytes())
+        .map_err(storage_err)?
+        .map(|v| v.to_vec()))
+}
+
 /// Maps a sled error to the library error (storage failures are I/O failures).
 pub fn storage_err(e: impl std::fmt::Display) -> Error {
     Error::Io(std::io::Error::other(format!("index storage: {e}")))
@@ -192,6 +200,13 @@ impl Store {
             dir: dir.to_path_buf(),
             db,
         })
+    }
+
+    /// Writes `key` = `value` into `tree` and flushes.
+    fn put_flushed(&self, tree: &sled::Tree, key: &str, value: &[u8]) -> Result<()> {
+        tree.insert(key.as_bytes(), value).map_err(storage_err)?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(())
     }
 
     /// The data directory.
@@ -315,20 +330,12 @@ impl Store {
 
     /// The stored re-ranking payload of a shape (`None`: absent or no such shape).
     pub fn payload(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        Ok(self
-            .payloads
-            .get(id.as_bytes())
-            .map_err(storage_err)?
-            .map(|v| v.to_vec()))
+        get_bytes(&self.payloads, id)
     }
 
     /// Writes (or replaces) the re-ranking payload of a stored shape and flushes.
     pub fn set_payload(&self, id: &str, payload: &[u8]) -> Result<()> {
-        self.payloads
-            .insert(id.as_bytes(), payload)
-            .map_err(storage_err)?;
-        self.db.flush().map_err(storage_err)?;
-        Ok(())
+        self.put_flushed(&self.payloads, id, payload)
     }
 
     /// The record of a shape.
@@ -341,11 +348,7 @@ impl Store {
 
     /// The stored signature bytes of a shape.
     pub fn signature(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        Ok(self
-            .signatures
-            .get(id.as_bytes())
-            .map_err(storage_err)?
-            .map(|v| v.to_vec()))
+        get_bytes(&self.signatures, id)
     }
 
     /// Replaces the stored signature (and the record's spec key) of an existing shape.
@@ -367,11 +370,7 @@ impl Store {
 
     /// The original upload of a shape.
     pub fn mesh(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        Ok(self
-            .meshes
-            .get(id.as_bytes())
-            .map_err(storage_err)?
-            .map(|v| v.to_vec()))
+        get_bytes(&self.meshes, id)
     }
 
     /// Records in id order, starting after `after` (exclusive), filtered by `tag`, at most
@@ -439,20 +438,12 @@ impl Store {
 
     /// A `meta` value.
     pub fn meta_get(&self, key: &str) -> Result<Option<Vec<u8>>> {
-        Ok(self
-            .meta
-            .get(key.as_bytes())
-            .map_err(storage_err)?
-            .map(|v| v.to_vec()))
+        get_bytes(&self.meta, key)
     }
 
     /// Sets a `meta` value and flushes.
     pub fn meta_set(&self, key: &str, value: &[u8]) -> Result<()> {
-        self.meta
-            .insert(key.as_bytes(), value)
-            .map_err(storage_err)?;
-        self.db.flush().map_err(storage_err)?;
-        Ok(())
+        self.put_flushed(&self.meta, key, value)
     }
 
     /// Stores the calibration JSON.
