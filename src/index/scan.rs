@@ -6,7 +6,8 @@
 //!
 //! It is loaded from the store at start and kept in step with every insert and delete by the
 //! server (under a write lock held only for the update). Recalibration builds the new prepared
-//! array outside the lock and swaps it in, so searches never wait for it.
+//! array outside the lock and swaps it in; only the engine's table is rebuilt under the lock
+//! (one pass over the prepared histograms), so searches wait for that pass at most.
 
 use super::engine::{Engine, ScanTable};
 use rayon::prelude::*;
