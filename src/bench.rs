@@ -56,6 +56,14 @@ struct SearchBench {
     /// `chi2`, ...).
     #[arg(long)]
     dissimilarity: Option<String>,
+    /// Spread of the synthetic copies' distance scale factors (see `bench populate`).
+    #[arg(long, default_value_t = 0.05)]
+    spread: f64,
+    /// Query with shapes that are not stored: base shapes with every distance scaled by this
+    /// factor (outside `1 ± spread`, their nearest stored neighbours are far: a harder case
+    /// for the bounds). Default: stored shapes, themselves left out.
+    #[arg(long)]
+    query_scale: Option<f64>,
 }
 
 #[derive(Args)]
@@ -506,20 +514,28 @@ fn synthetic_bases(
 }
 
 /// Synthetic signature `i` from the bases: base `i % 24` with every distance scaled by a
-/// factor in [0.95, 1.05] (copies `0..24` are the bases themselves). A query then has a few
-/// thousand same-base neighbours at 10⁵ shapes, most of them close.
+/// factor in [1 − spread, 1 + spread] (copies `0..24` are the bases themselves). With the
+/// default spread 0.05 a query has a few thousand same-base neighbours at 10⁵ shapes, most of
+/// them close; a wider spread makes neighbours farther apart (more exact scores per query).
 fn synthetic_signature(
     bases: &[(Signature, Option<shapeseek::rerank::GwPayload>)],
     i: usize,
+    spread: f64,
 ) -> Signature {
+    let sig = &bases[i % bases.len()].0;
+    if i < bases.len() {
+        return sig.clone();
+    }
+    scaled(sig, 1.0 + spread * (2.0 * unit(i as u64) - 1.0))
+}
+
+/// `sig` with every distance multiplied by `f`.
+fn scaled(sig: &Signature, f: f64) -> Signature {
     use shapeseek::signature::ChannelValues;
-    let mut sig = bases[i % bases.len()].0.clone();
-    if i >= bases.len() {
-        let f = 0.95 + 0.1 * unit(i as u64);
-        for c in &mut sig.channels {
-            if let ChannelValues::Distribution(q) = &mut c.values {
-                q.quantiles.iter_mut().for_each(|x| *x *= f);
-            }
+    let mut sig = sig.clone();
+    for c in &mut sig.channels {
+        if let ChannelValues::Distribution(q) = &mut c.values {
+            q.quantiles.iter_mut().for_each(|x| *x *= f);
         }
     }
     sig
@@ -535,7 +551,9 @@ fn run_search(b: &SearchBench) -> Result<()> {
     }
     let max = b.sizes.iter().copied().max().unwrap_or(0);
     let bases = synthetic_bases(&cfg.signature, false)?;
-    let sigs: Vec<Signature> = (0..max).map(|i| synthetic_signature(&bases, i)).collect();
+    let sigs: Vec<Signature> = (0..max)
+        .map(|i| synthetic_signature(&bases, i, b.spread))
+        .collect();
     println!(
         "config `{}` ({:?}), top {}, {} queries per size, rayon threads {}; reference = the \
          full ranking (every candidate scored, sorted) on the same queries",
@@ -561,17 +579,24 @@ fn run_search(b: &SearchBench) -> Result<()> {
             .collect();
         let (mut times, mut full, mut scored) = (Vec::new(), Vec::new(), 0usize);
         for &q in &queries {
+            let outside = b
+                .query_scale
+                .map(|f| prepare_for_ranking(&scaled(&bases[q % bases.len()].0, f), &cal));
+            let (query, skip) = match &outside {
+                Some(p) => (p, usize::MAX),
+                None => (&prepared[q], q),
+            };
             let t = Instant::now();
             let (hits, count) =
-                table.top_k_counted(&prepared[q], &prepared, &cfg.query, b.top_k, &|i| i != q);
+                table.top_k_counted(query, &prepared, &cfg.query, b.top_k, &|i| i != skip);
             times.push(t.elapsed().as_secs_f64() * 1e3);
             scored += count;
             let t = Instant::now();
-            let all = rank(&prepared[q], &prepared, &cfg.query);
+            let all = rank(query, &prepared, &cfg.query);
             full.push(t.elapsed().as_secs_f64() * 1e3);
             let head: Vec<(usize, f64)> = all
                 .into_iter()
-                .filter(|&(i, _)| i != q)
+                .filter(|&(i, _)| i != skip)
                 .take(b.top_k)
                 .collect();
             if head != hits {
@@ -619,7 +644,7 @@ fn run_populate(b: &PopulateBench) -> Result<()> {
         let chunk = (b.count - written).min(5000);
         let mut items = Vec::with_capacity(chunk);
         for i in written..written + chunk {
-            let sig = &synthetic_signature(&bases, i);
+            let sig = &synthetic_signature(&bases, i, 0.05);
             let mut original = format!("# shapeseek synthetic shape {i}\n").into_bytes();
             original.extend_from_slice(&obj);
             let sha256: [u8; 32] = Sha256::digest(&original).into();
