@@ -6,6 +6,7 @@
 //! is pure synchronous Rust: no HTTP, no storage.
 
 pub mod baseline;
+mod bytes;
 pub mod eigen;
 pub mod error;
 pub mod eval;

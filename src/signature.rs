@@ -89,6 +89,7 @@
 //! 213–330 ms median, 205–250 ms best of 10
 //! (`cargo test --release --lib signature::tests::timing_10k -- --ignored --nocapture`).
 
+use crate::bytes::{put_f64, put_f64s, put_u64, ByteReader};
 use crate::mesh::{norm, sub, Mesh};
 use crate::pipeline::Analysis;
 use crate::{Error, Result};
@@ -1818,11 +1819,11 @@ impl Signature {
                 ChannelValues::Distribution(s) => {
                     w.push(0);
                     put_f64(&mut w, s.mass);
-                    put_f64s(&mut w, &s.quantiles);
+                    put_f64_array(&mut w, &s.quantiles);
                 }
                 ChannelValues::Vector(v) => {
                     w.push(1);
-                    put_f64s(&mut w, v);
+                    put_f64_array(&mut w, v);
                 }
             }
         }
@@ -1831,7 +1832,7 @@ impl Signature {
 
     /// Decodes [`Signature::to_bytes`]; malformed input is an [`Error::InvalidArgument`].
     pub fn from_bytes(b: &[u8]) -> Result<Self> {
-        let mut r = Reader { b, pos: 0 };
+        let mut r = Reader(ByteReader::new(b));
         if r.take(4)? != MAGIC {
             return Err(Error::InvalidArgument("signature: bad magic".into()));
         }
@@ -1860,7 +1861,7 @@ impl Signature {
             };
             channels.push(ChannelData { name, values });
         }
-        if r.pos != b.len() {
+        if !r.0.at_end() {
             return Err(Error::InvalidArgument("signature: trailing bytes".into()));
         }
         Ok(Signature {
@@ -1878,45 +1879,33 @@ impl Signature {
     }
 }
 
-fn put_u64(w: &mut Vec<u8>, v: u64) {
-    w.extend_from_slice(&v.to_le_bytes());
-}
-fn put_f64(w: &mut Vec<u8>, v: f64) {
-    w.extend_from_slice(&v.to_le_bytes());
-}
 fn put_str(w: &mut Vec<u8>, s: &str) {
     put_u64(w, s.len() as u64);
     w.extend_from_slice(s.as_bytes());
 }
-fn put_f64s(w: &mut Vec<u8>, v: &[f64]) {
+
+/// A length-prefixed `f64` array.
+fn put_f64_array(w: &mut Vec<u8>, v: &[f64]) {
     put_u64(w, v.len() as u64);
-    for x in v {
-        put_f64(w, *x);
-    }
+    put_f64s(w, v);
 }
 
-struct Reader<'a> {
-    b: &'a [u8],
-    pos: usize,
+/// [`ByteReader`] with this format's errors.
+struct Reader<'a>(ByteReader<'a>);
+
+fn truncated() -> Error {
+    Error::InvalidArgument("signature: truncated".into())
 }
 
 impl<'a> Reader<'a> {
     fn take(&mut self, n: usize) -> Result<&'a [u8]> {
-        let end = self
-            .pos
-            .checked_add(n)
-            .filter(|&e| e <= self.b.len())
-            .ok_or_else(|| Error::InvalidArgument("signature: truncated".into()))?;
-        let s = &self.b[self.pos..end];
-        self.pos = end;
-        Ok(s)
+        self.0.take(n).ok_or_else(truncated)
     }
     fn u64(&mut self) -> Result<u64> {
-        let s = self.take(8)?;
-        Ok(u64::from_le_bytes(s.try_into().expect("8 bytes")))
+        self.0.u64().ok_or_else(truncated)
     }
     fn f64(&mut self) -> Result<f64> {
-        Ok(f64::from_bits(self.u64()?))
+        self.0.f64().ok_or_else(truncated)
     }
     fn string(&mut self) -> Result<String> {
         let n = self.u64()? as usize;
@@ -1924,12 +1913,10 @@ impl<'a> Reader<'a> {
         String::from_utf8(s.to_vec())
             .map_err(|_| Error::InvalidArgument("signature: bad utf-8".into()))
     }
+    /// A length-prefixed `f64` array.
     fn f64s(&mut self) -> Result<Vec<f64>> {
         let n = self.u64()? as usize;
-        if n > self.b.len() / 8 {
-            return Err(Error::InvalidArgument("signature: truncated".into()));
-        }
-        (0..n).map(|_| self.f64()).collect()
+        self.0.f64s(n).ok_or_else(truncated)
     }
 }
 

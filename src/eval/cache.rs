@@ -13,6 +13,7 @@
 //! temporary file in the same directory that is then renamed over the target, so a reader never
 //! sees a partial file, and concurrent writers of the same entry (same content) are harmless.
 
+use crate::bytes::{put_f64, put_f64s, put_u64, ByteReader};
 use crate::eigen::EigenStats;
 use crate::mesh::prepare::PrepareReport;
 use crate::mesh::Mesh;
@@ -234,70 +235,41 @@ fn encode_analysis(a: &Analysis) -> Vec<u8> {
     };
     let h = serde_json::to_vec(&header).expect("header serialises");
     let mut out = Vec::with_capacity(8 + h.len() + n * 24 + m * 12 + n * 8 + n * k * 8);
-    out.extend_from_slice(&(h.len() as u64).to_le_bytes());
+    put_u64(&mut out, h.len() as u64);
     out.extend_from_slice(&h);
     for v in &a.mesh.vertices {
-        for c in v {
-            out.extend_from_slice(&c.to_le_bytes());
-        }
+        put_f64s(&mut out, v);
     }
     for f in &a.mesh.faces {
         for i in f {
             out.extend_from_slice(&i.to_le_bytes());
         }
     }
-    for x in &a.spectrum.mass {
-        out.extend_from_slice(&x.to_le_bytes());
-    }
+    put_f64s(&mut out, &a.spectrum.mass);
     let ev = &a.spectrum.eigenvectors;
     for j in 0..k {
         for i in 0..ev.nrows() {
-            out.extend_from_slice(&ev[(i, j)].to_le_bytes());
+            put_f64(&mut out, ev[(i, j)]);
         }
     }
     out
 }
 
-struct Rd<'a>(&'a [u8]);
-
-impl Rd<'_> {
-    fn take(&mut self, n: usize) -> Option<&[u8]> {
-        if self.0.len() < n {
-            return None;
-        }
-        let (a, b) = self.0.split_at(n);
-        self.0 = b;
-        Some(a)
-    }
-    fn f64s(&mut self, n: usize) -> Option<Vec<f64>> {
-        let b = self.take(n.checked_mul(8)?)?;
-        Some(
-            b.chunks_exact(8)
-                .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
-                .collect(),
-        )
-    }
-}
-
 fn decode_analysis(p: &[u8]) -> Option<Analysis> {
-    let mut r = Rd(p);
-    let hl = u64::from_le_bytes(r.take(8)?.try_into().ok()?) as usize;
+    let mut r = ByteReader::new(p);
+    let hl = r.u64()? as usize;
     let header: AnalysisHeader = serde_json::from_slice(r.take(hl)?).ok()?;
     let (n, m, k) = (header.n, header.m, header.k);
     let coords = r.f64s(n.checked_mul(3)?)?;
     let vertices: Vec<[f64; 3]> = coords.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-    let fb = r.take(m.checked_mul(12)?)?;
-    let idx: Vec<u32> = fb
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
-        .collect();
+    let idx = r.u32s(m.checked_mul(3)?)?;
     let faces: Vec<[u32; 3]> = idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
     if faces.iter().any(|f| f.iter().any(|&i| i as usize >= n)) {
         return None;
     }
     let mass = r.f64s(n)?;
     let ev = r.f64s(n.checked_mul(k)?)?;
-    if !r.0.is_empty() || header.eigenvalues.len() != k {
+    if !r.at_end() || header.eigenvalues.len() != k {
         return None;
     }
     let eigenvectors = Mat::from_fn(n, k, |i, j| ev[j * n + i]);

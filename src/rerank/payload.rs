@@ -15,6 +15,7 @@
 //!   a distance matrix is 0, the heat-kernel diagonal is stored separately). At m = 200 and one
 //!   scale: 80 KB per shape.
 
+use crate::bytes::{put_f32s, put_f64, put_f64s, put_u64, ByteReader};
 use crate::pipeline::Analysis;
 use crate::signature::{farthest_points, EdgeGraph, ZERO_MODE_TOLERANCE};
 use crate::{Error, Result};
@@ -125,63 +126,55 @@ impl GwPayload {
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut w = Vec::with_capacity(64 + self.upper.iter().map(|u| u.len() * 4).sum::<usize>());
         w.extend_from_slice(MAGIC);
-        let put_u64 = |w: &mut Vec<u8>, v: u64| w.extend_from_slice(&v.to_le_bytes());
         put_u64(&mut w, self.spec_key.len() as u64);
         w.extend_from_slice(self.spec_key.as_bytes());
         put_u64(&mut w, self.samples as u64);
-        w.extend_from_slice(&self.lambda1.to_le_bytes());
+        put_f64(&mut w, self.lambda1);
         put_u64(&mut w, self.weights.len() as u64);
-        for x in &self.weights {
-            w.extend_from_slice(&x.to_le_bytes());
-        }
+        put_f64s(&mut w, &self.weights);
         put_u64(&mut w, self.times.len() as u64);
-        for x in &self.times {
-            w.extend_from_slice(&x.to_le_bytes());
-        }
+        put_f64s(&mut w, &self.times);
         put_u64(&mut w, self.upper.len() as u64);
         for (u, d) in self.upper.iter().zip(&self.diagonal) {
             put_u64(&mut w, u.len() as u64);
-            for x in u {
-                w.extend_from_slice(&x.to_le_bytes());
-            }
+            put_f32s(&mut w, u);
             put_u64(&mut w, d.len() as u64);
-            for x in d {
-                w.extend_from_slice(&x.to_le_bytes());
-            }
+            put_f32s(&mut w, d);
         }
         w
     }
 
     /// Decodes [`GwPayload::to_bytes`]; malformed input is an [`Error::InvalidArgument`].
     pub fn from_bytes(b: &[u8]) -> Result<Self> {
-        let mut r = Reader { b, pos: 0 };
-        if r.take(4)? != MAGIC {
+        let mut r = ByteReader::new(b);
+        if r.take(4).ok_or_else(bad)? != MAGIC {
             return Err(Error::InvalidArgument("gw payload: bad magic".into()));
         }
-        let len = r.u64()? as usize;
+        let len = r.u64().ok_or_else(bad)? as usize;
         if len > 1 << 10 {
             return Err(bad());
         }
-        let spec_key = String::from_utf8(r.take(len)?.to_vec()).map_err(|_| bad())?;
-        let samples = r.u64()? as usize;
-        let lambda1 = f64::from_le_bytes(r.take(8)?.try_into().map_err(|_| bad())?);
-        let nw = r.u64()? as usize;
-        let weights = r.f64s(nw)?;
-        let nt = r.u64()? as usize;
-        let times = r.f64s(nt)?;
-        let ns = r.u64()? as usize;
+        let spec_key =
+            String::from_utf8(r.take(len).ok_or_else(bad)?.to_vec()).map_err(|_| bad())?;
+        let samples = r.u64().ok_or_else(bad)? as usize;
+        let lambda1 = r.f64().ok_or_else(bad)?;
+        let nw = r.u64().ok_or_else(bad)? as usize;
+        let weights = r.f64s(nw).ok_or_else(bad)?;
+        let nt = r.u64().ok_or_else(bad)? as usize;
+        let times = r.f64s(nt).ok_or_else(bad)?;
+        let ns = r.u64().ok_or_else(bad)? as usize;
         if ns > 64 {
             return Err(bad());
         }
         let mut upper = Vec::with_capacity(ns);
         let mut diagonal = Vec::with_capacity(ns);
         for _ in 0..ns {
-            let nu = r.u64()? as usize;
-            upper.push(r.f32s(nu)?);
-            let nd = r.u64()? as usize;
-            diagonal.push(r.f32s(nd)?);
+            let nu = r.u64().ok_or_else(bad)? as usize;
+            upper.push(r.f32s(nu).ok_or_else(bad)?);
+            let nd = r.u64().ok_or_else(bad)? as usize;
+            diagonal.push(r.f32s(nd).ok_or_else(bad)?);
         }
-        if r.pos != b.len()
+        if !r.at_end()
             || weights.len() != samples
             || upper
                 .iter()
@@ -204,39 +197,6 @@ impl GwPayload {
 
 fn bad() -> Error {
     Error::InvalidArgument("gw payload: truncated or malformed".into())
-}
-
-struct Reader<'a> {
-    b: &'a [u8],
-    pos: usize,
-}
-
-impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8]> {
-        let end = self.pos.checked_add(n).ok_or_else(bad)?;
-        let s = self.b.get(self.pos..end).ok_or_else(bad)?;
-        self.pos = end;
-        Ok(s)
-    }
-    fn u64(&mut self) -> Result<u64> {
-        Ok(u64::from_le_bytes(
-            self.take(8)?.try_into().map_err(|_| bad())?,
-        ))
-    }
-    fn f64s(&mut self, n: usize) -> Result<Vec<f64>> {
-        let raw = self.take(n.checked_mul(8).ok_or_else(bad)?)?;
-        Ok(raw
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
-            .collect())
-    }
-    fn f32s(&mut self, n: usize) -> Result<Vec<f32>> {
-        let raw = self.take(n.checked_mul(4).ok_or_else(bad)?)?;
-        Ok(raw
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-            .collect())
-    }
 }
 
 /// Computes the payload of an analysed (unit-area) shape.
