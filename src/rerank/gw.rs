@@ -162,11 +162,8 @@ fn sinkhorn(
     let mut u = vec![1.0; m];
     let mut v = vec![1.0; n];
     let mut kv = vec![0.0; m];
-    let mut used = 0;
-    const BOUND: f64 = 1e50;
-    for it in 0..iters {
-        used = it + 1;
-        // u = p / (K v)
+    // kv = K v (column by column: K is column-major).
+    let kernel_times = |kernel: &Mat<f64>, v: &[f64], kv: &mut [f64]| {
         kv.iter_mut().for_each(|x| *x = 0.0);
         for j in 0..n {
             let col = kernel.col_as_slice(j);
@@ -175,6 +172,18 @@ fn sinkhorn(
                 kv[i] += col[i] * vj;
             }
         }
+    };
+    let mut used = 0;
+    // True when `kv` already holds K v for the current K and v (after a marginal check).
+    let mut kv_current = false;
+    const BOUND: f64 = 1e50;
+    for it in 0..iters {
+        used = it + 1;
+        // u = p / (K v)
+        if !kv_current {
+            kernel_times(&kernel, &v, &mut kv);
+        }
+        kv_current = false;
         for i in 0..m {
             u[i] = p[i] / kv[i].max(1e-300);
         }
@@ -202,18 +211,13 @@ fn sinkhorn(
         }
         // Row-marginal error (columns are exact after the v update), every 10 iterations.
         if it % 10 == 9 {
-            kv.iter_mut().for_each(|x| *x = 0.0);
-            for j in 0..n {
-                let col = kernel.col_as_slice(j);
-                let vj = v[j];
-                for i in 0..m {
-                    kv[i] += col[i] * vj;
-                }
-            }
+            kernel_times(&kernel, &v, &mut kv);
             let err: f64 = (0..m).map(|i| (u[i] * kv[i] - p[i]).abs()).sum();
             if err < tol {
                 break;
             }
+            // The next iteration starts with this very product.
+            kv_current = true;
         }
     }
     // Keep the potentials for the warm start of the next outer iteration.
