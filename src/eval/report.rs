@@ -117,11 +117,7 @@ impl Reference {
             if !l.starts_with('|') {
                 continue;
             }
-            let cells: Vec<String> = l
-                .trim_matches('|')
-                .split('|')
-                .map(|c| c.trim().replace("**", ""))
-                .collect();
+            let cells = table_cells(l);
             if cells.len() < 3 {
                 continue;
             }
@@ -154,11 +150,7 @@ impl Reference {
                 header = None;
                 continue;
             }
-            let cells: Vec<String> = l
-                .trim_matches('|')
-                .split('|')
-                .map(|c| c.trim().replace("**", ""))
-                .collect();
+            let cells = table_cells(l);
             if cells
                 .iter()
                 .all(|c| c.chars().all(|ch| ch == '-' || ch == ':'))
@@ -201,6 +193,14 @@ impl Reference {
     pub fn get_map(&self, config: &str, group: &str) -> Option<f64> {
         lookup(&self.map, config, group)
     }
+}
+
+/// The cells of a Markdown table row, trimmed, bold markers removed.
+fn table_cells(row: &str) -> Vec<String> {
+    row.trim_matches('|')
+        .split('|')
+        .map(|c| c.trim().replace("**", ""))
+        .collect()
 }
 
 fn norm_name(s: &str) -> String {
