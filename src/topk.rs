@@ -208,8 +208,19 @@ impl BoundTable {
     /// Replaces the group sums at position `at`.
     pub fn replace(&mut self, at: usize, p: &Prepared) {
         assert!(at < self.len, "replace position {at} >= len {}", self.len);
-        self.remove(at);
-        self.insert(at, p);
+        let Some(layout) = &self.layout else {
+            // No layout yet: `p` may bring the first one.
+            self.remove(at);
+            self.insert(at, p);
+            return;
+        };
+        let (v, d, pr, cd) = rows_of(p, layout);
+        let nch = layout.names.len();
+        let s = layout.stride();
+        self.valid[at * nch..(at + 1) * nch].copy_from_slice(&v);
+        self.density[at * s..(at + 1) * s].copy_from_slice(&d);
+        self.prob[at * s..(at + 1) * s].copy_from_slice(&pr);
+        self.cdf[at * s..(at + 1) * s].copy_from_slice(&cd);
     }
 
     /// Removes position `at`.
