@@ -549,16 +549,20 @@ impl<E: Engine> App<E> {
         Ok(removed)
     }
 
+    /// True when the index size moved by more than the configured fraction since the last
+    /// calibration.
+    fn needs_recalibration(&self) -> bool {
+        self.scan
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .needs_recalibration(self.cfg.recalibrate_fraction)
+    }
+
     /// After an insert or delete: gauges, and a background recalibration when the index size
     /// moved by more than the configured fraction (searches go on meanwhile).
     fn after_change(self: &Arc<Self>) {
         self.update_gauges();
-        let needs = self
-            .scan
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .needs_recalibration(self.cfg.recalibrate_fraction);
-        if needs && !self.recalibrating.swap(true, Ordering::AcqRel) {
+        if self.needs_recalibration() && !self.recalibrating.swap(true, Ordering::AcqRel) {
             let app = self.clone();
             tokio::task::spawn_blocking(move || app.recalibrate_loop());
         }
@@ -604,12 +608,7 @@ impl<E: Engine> App<E> {
         self.recalibrating.store(false, Ordering::Release);
         // A write that came between the last check and the reset saw the flag set and left the
         // work to this loop: check once more.
-        let again = self
-            .scan
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .needs_recalibration(self.cfg.recalibrate_fraction);
-        if again && !self.recalibrating.swap(true, Ordering::AcqRel) {
+        if self.needs_recalibration() && !self.recalibrating.swap(true, Ordering::AcqRel) {
             self.recalibrate_loop();
         }
     }
@@ -739,19 +738,15 @@ impl<E: Engine> App<E> {
                     return Ok((Vec::new(), 0, 0, 0.0, 0.0));
                 };
                 let epoch = app.engine.calibration_epoch(&cal);
-                let query: Arc<E::Prepared> = match (&query_sig, &opts.id) {
-                    (Some(sig), _) => Arc::new(app.engine.prepare(sig, &cal)),
-                    (None, Some(id)) => {
-                        let at = s.position(id).ok_or_else(|| ApiError::not_found(id))?;
-                        Arc::new(s.prepared()[at].clone())
-                    }
-                    (None, None) => return Err(ApiError::invalid("no query given")),
-                };
-                let self_at = if query_sig.is_none() {
-                    opts.id.as_deref().and_then(|id| s.position(id))
-                } else {
-                    None
-                };
+                let (query, self_at): (Arc<E::Prepared>, Option<usize>) =
+                    match (&query_sig, &opts.id) {
+                        (Some(sig), _) => (Arc::new(app.engine.prepare(sig, &cal)), None),
+                        (None, Some(id)) => {
+                            let at = s.position(id).ok_or_else(|| ApiError::not_found(id))?;
+                            (Arc::new(s.prepared()[at].clone()), Some(at))
+                        }
+                        (None, None) => return Err(ApiError::invalid("no query given")),
+                    };
                 let query_payload = match (&upload_payload, &opts.id) {
                     _ if !needs_payload => None,
                     (Some(p), _) => Some(p.clone()),
