@@ -53,11 +53,6 @@ pub struct Scored {
     pub score: f64,
 }
 
-/// The ranking order of the framework: score (`f64::total_cmp`), ties by position.
-pub fn by_score(a: &Scored, b: &Scored) -> std::cmp::Ordering {
-    a.score.total_cmp(&b.score).then(a.at.cmp(&b.at))
-}
-
 impl<E: Engine> ScanIndex<E> {
     /// The current calibration (None only while the index has never held a shape).
     pub fn calibration(&self) -> Option<&Arc<E::Calibration>> {
