@@ -302,6 +302,16 @@ impl ChannelSpec {
         }
     }
 
+    /// The pairs of `channel` closer than `radius` ([`ChannelKind::Truncated`]).
+    pub fn truncated(channel: ChannelSpec, radius: f64) -> Self {
+        Self {
+            kind: ChannelKind::Truncated {
+                channel: Box::new(channel.kind),
+                radius,
+            },
+        }
+    }
+
     /// Geodesic distance distribution.
     pub fn geodesic(radius: Option<f64>) -> Self {
         Self {

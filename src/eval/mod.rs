@@ -95,6 +95,14 @@ pub struct EvalArgs {
     /// Only the manifest rows of these classes (comma-separated), e.g. for a class split.
     #[arg(long, value_delimiter = ',')]
     pub classes: Vec<String>,
+    /// Keep at most this many rows of each class (a pseudo-random subset, fixed by
+    /// `--sample-seed`): smaller relevant sets and fewer distractors, e.g. to check that a stage
+    /// does not depend on the class size.
+    #[arg(long)]
+    pub per_class: Option<usize>,
+    /// Seed of `--per-class`'s subset.
+    #[arg(long, default_value_t = 0)]
+    pub sample_seed: u64,
     /// Laplace–Beltrami operator: cotangent or intrinsic-delaunay.
     #[arg(long, default_value = "cotangent")]
     pub laplacian: String,
@@ -106,6 +114,10 @@ pub struct EvalArgs {
     /// what scaling does to each kernel (paper Table 2's Scale row).
     #[arg(long)]
     pub no_normalize: bool,
+    /// Write every configuration's all-pairs dissimilarity matrix (re-ranked rows: ranks) as JSON
+    /// here, with the manifest's ids, classes and transforms, for analysis outside shapeseek.
+    #[arg(long)]
+    pub matrices: Option<PathBuf>,
 }
 
 impl EvalArgs {
@@ -125,9 +137,12 @@ impl EvalArgs {
             quiet: true,
             rerank: Vec::new(),
             classes: Vec::new(),
+            per_class: None,
+            sample_seed: 0,
             laplacian: "cotangent".into(),
             no_normalize: false,
             window_percentile: 0.95,
+            matrices: None,
         }
     }
 }
@@ -596,6 +611,13 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
             )));
         }
     }
+    if let Some(m) = args.per_class {
+        manifest.entries =
+            per_class_subset(std::mem::take(&mut manifest.entries), m, args.sample_seed);
+        if manifest.entries.is_empty() {
+            return Err(Error::InvalidArgument("--per-class must be ≥ 1".into()));
+        }
+    }
     let rerank_stages: Vec<(String, crate::rerank::RerankStage)> = args
         .rerank
         .iter()
@@ -731,7 +753,11 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     // Re-ranking payloads, one set per distinct payload specification.
     let mut rerank_notes = String::new();
     let mut payload_sets: Vec<(String, Vec<Option<crate::rerank::GwPayload>>)> = Vec::new();
-    for (_, st) in &rerank_stages {
+    let all_stages = rerank_stages
+        .iter()
+        .map(|(_, st)| st)
+        .chain(configs.iter().flat_map(|c| &c.rerank));
+    for st in all_stages {
         if let Some(ps) = st.payload_spec() {
             let key = ps.key();
             if !payload_sets.iter().any(|(k, _)| *k == key) {
@@ -779,6 +805,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     let (mut scoring_s, mut metrics_s) = (0.0, 0.0);
     let mut solved_pairs = crate::rerank::eval::PairCache::new();
     let mut direct_fallbacks = 0usize;
+    let mut dumped: Vec<(String, Vec<f64>)> = Vec::new();
     for (c, cfg) in configs.iter().enumerate() {
         let g = group_of[c];
         let prep = &prepared[g];
@@ -791,8 +818,28 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
             }
         };
         scoring_s += t.elapsed().as_secs_f64();
+        // The configuration's own stages, then each `--rerank` stage on its result; every
+        // stage's shortlist comes from the current order, a reciprocal stage's mutual
+        // dissimilarities from the first stage's matrix.
+        let mut cur = dist.clone();
+        for st in &cfg.rerank {
+            let (d2, stats) = apply_stage(
+                st,
+                &dist,
+                &cur,
+                n,
+                &included,
+                &payload_sets,
+                &mut solved_pairs,
+            );
+            rerank_notes.push_str(&stage_note(&cfg.name, st, &stats, args.quiet));
+            cur = d2;
+        }
+        if args.matrices.is_some() {
+            dumped.push((cfg.name.clone(), cur.clone()));
+        }
         let t = Instant::now();
-        let eval = metrics::evaluate(&dist, n, &classes, &transforms, &strengths, &included);
+        let eval = metrics::evaluate(&cur, n, &classes, &transforms, &strengths, &included);
         metrics_s += t.elapsed().as_secs_f64();
         results.push(ConfigResult {
             name: cfg.name.clone(),
@@ -800,38 +847,21 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
             alias: alias_of(cfg),
         });
         for (label, st) in &rerank_stages {
-            let empty = Vec::new();
-            let pl = st
-                .payload_spec()
-                .and_then(|ps| payload_sets.iter().find(|(k, _)| *k == ps.key()))
-                .map(|(_, p)| p)
-                .unwrap_or(&empty);
-            let pl: &[Option<crate::rerank::GwPayload>] = if pl.is_empty() { &[] } else { pl };
-            let payloads: Vec<Option<crate::rerank::GwPayload>> = if pl.is_empty() {
-                vec![None; n]
-            } else {
-                pl.to_vec()
-            };
-            let (d2, stats) = crate::rerank::eval::rerank_matrix(
+            let (d2, stats) = apply_stage(
+                st,
                 &dist,
+                &cur,
                 n,
                 &included,
-                &payloads,
-                st,
+                &payload_sets,
                 &mut solved_pairs,
             );
             let eval = metrics::evaluate(&d2, n, &classes, &transforms, &strengths, &included);
             let name = format!("{}+{}", cfg.name, label);
-            rerank_notes.push_str(&format!(
-                "- `{name}`: {} newly solved pairs in {:.1} s wall; {:.2} ms CPU per GW solve; `rerank::apply` on one query's shortlist: {:.1} ms wall\n",
-                stats.pairs, stats.wall_s, stats.per_candidate_ms, stats.per_query_ms
-            ));
-            if !args.quiet {
-                eprintln!(
-                    "eval: {name}: {} pairs, {:.1} s, {:.2} ms/solve, {:.1} ms/query",
-                    stats.pairs, stats.wall_s, stats.per_candidate_ms, stats.per_query_ms
-                );
+            if args.matrices.is_some() {
+                dumped.push((name.clone(), d2.clone()));
             }
+            rerank_notes.push_str(&stage_note(&name, st, &stats, args.quiet));
             results.push(ConfigResult {
                 name,
                 eval,
@@ -841,6 +871,9 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     }
     drop(channel_cache);
     let ranking_s = t_rank.elapsed().as_secs_f64();
+    if let Some(p) = &args.matrices {
+        write_matrices(p, &manifest, &included, n, &dumped)?;
+    }
 
     // Reports.
     let t_rep = Instant::now();
@@ -937,6 +970,123 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     })
 }
 
+/// One re-ranking stage over every query row (`crate::rerank::eval::rerank_matrix`), with the
+/// run's payloads for the stage's payload spec.
+fn apply_stage(
+    st: &crate::rerank::RerankStage,
+    base: &[f64],
+    cur: &[f64],
+    n: usize,
+    included: &[bool],
+    payload_sets: &[(String, Vec<Option<crate::rerank::GwPayload>>)],
+    solved_pairs: &mut crate::rerank::eval::PairCache,
+) -> (Vec<f64>, crate::rerank::eval::RerankStats) {
+    let none = vec![None; n];
+    let payloads = st
+        .payload_spec()
+        .and_then(|ps| payload_sets.iter().find(|(k, _)| *k == ps.key()))
+        .map(|(_, p)| p)
+        .filter(|p| !p.is_empty())
+        .unwrap_or(&none);
+    crate::rerank::eval::rerank_matrix(base, cur, n, included, payloads, st, solved_pairs)
+}
+
+/// The report's line about one re-ranking stage (also printed unless `quiet`).
+fn stage_note(
+    name: &str,
+    st: &crate::rerank::RerankStage,
+    stats: &crate::rerank::eval::RerankStats,
+    quiet: bool,
+) -> String {
+    let line = match st {
+        crate::rerank::RerankStage::Reciprocal(_) => format!(
+            "`{name}` ({}): {:.1} s wall for every query; {:.2} ms per query's shortlist (one thread)",
+            st.label(),
+            stats.wall_s,
+            stats.per_query_ms
+        ),
+        _ => format!(
+            "`{name}` ({}): {} newly solved pairs in {:.1} s wall; {:.2} ms CPU per GW solve; `rerank::apply` on one query's shortlist: {:.1} ms wall",
+            st.label(),
+            stats.pairs,
+            stats.wall_s,
+            stats.per_candidate_ms,
+            stats.per_query_ms
+        ),
+    };
+    if !quiet {
+        eprintln!("eval: {line}");
+    }
+    format!("- {line}\n")
+}
+
+/// `--per-class`: per class, the `m` rows with the smallest `hash(seed, id)`, in manifest order.
+fn per_class_subset(entries: Vec<manifest::Entry>, m: usize, seed: u64) -> Vec<manifest::Entry> {
+    let key = |e: &manifest::Entry| hash_parts(&[seed.to_string().as_bytes(), e.id.as_bytes()]);
+    let mut keep = vec![false; entries.len()];
+    let mut classes: Vec<&str> = entries.iter().map(|e| e.class.as_str()).collect();
+    classes.sort_unstable();
+    classes.dedup();
+    for c in classes {
+        let mut rows: Vec<(String, usize)> = entries
+            .iter()
+            .enumerate()
+            .filter(|(_, e)| e.class == c)
+            .map(|(i, e)| (key(e), i))
+            .collect();
+        rows.sort();
+        for (_, i) in rows.into_iter().take(m) {
+            keep[i] = true;
+        }
+    }
+    entries
+        .into_iter()
+        .zip(keep)
+        .filter_map(|(e, k)| k.then_some(e))
+        .collect()
+}
+
+/// `--matrices`: one JSON document with the manifest rows and, per configuration, its row-major
+/// `n × n` dissimilarity matrix (`null` on the diagonal and for rows that were not ranked).
+fn write_matrices(
+    path: &Path,
+    manifest: &Manifest,
+    included: &[bool],
+    n: usize,
+    mats: &[(String, Vec<f64>)],
+) -> Result<()> {
+    let rows: Vec<Value> = manifest
+        .entries
+        .iter()
+        .zip(included)
+        .map(|(e, &inc)| {
+            json!({"id": e.id, "class": e.class, "transform": e.transform, "strength": e.strength, "ranked": inc})
+        })
+        .collect();
+    let matrices: serde_json::Map<String, Value> = mats
+        .iter()
+        .map(|(name, d)| {
+            let m: Vec<Vec<Option<f64>>> = (0..n)
+                .map(|i| {
+                    (0..n)
+                        .map(|j| {
+                            let v = d[i * n + j];
+                            (i != j && included[i] && included[j] && v.is_finite()).then_some(v)
+                        })
+                        .collect()
+                })
+                .collect();
+            (name.clone(), json!(m))
+        })
+        .collect();
+    let doc = json!({"shapes": rows, "matrices": matrices});
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)?;
+    }
+    cache::write_atomic(path, serde_json::to_string(&doc).expect("json").as_bytes())?;
+    Ok(())
+}
+
 /// The name of a preset configuration that is the same method as `cfg` under another name:
 /// same query, same specifications of the queried channels, same discretisation (other channels
 /// of a shared family specification do not matter). Used for reference look-ups.
@@ -954,6 +1104,7 @@ pub fn alias_of(cfg: &Config) -> Option<String> {
             serde_json::to_value(&c.query).ok(),
             serde_json::to_value(&chans).ok(),
             serde_json::to_value(&base).ok(),
+            serde_json::to_value(&c.rerank).ok(),
         )
     };
     let me = method(cfg);

@@ -5,7 +5,9 @@
 //! `sgw:K[:key=value]…` with keys `m` (samples, default 100), `t` (comma-separated times,
 //! default 0.016,0.04,0.1), `metric` (`dist` | `kernel`), `rule` (`abs` | `lambda1`: `t = τ/λ₁`),
 //! `eps` (relative ε, default 0.003), `outer` (outer iterations, default 5), `blend` (weight
-//! `w` of the first-stage rank in [`Fusion::RankBlend`]; absent: GW alone).
+//! `w` of the first-stage rank in [`Fusion::RankBlend`]; absent: GW alone); or
+//! `recip:K[:key=value]…` ([`ReciprocalStage`]) with keys `k` (comma-separated neighbourhood
+//! sizes, default 8,16,32), `expand` (default 4) and `lambda` (default 0.1).
 //!
 //! Payloads are cached under `<cache>/gw/` keyed by the analysis key and
 //! [`PayloadSpec::key`], so only the first run of a payload spec pays for it.
@@ -15,7 +17,8 @@
 //! are exact; the pooled EER of such a run compares ranks, not distances.
 
 use super::{
-    fuse, gw_score, Fusion, GwMetric, GwPayload, PayloadSpec, RerankStage, SgwStage, TimeRule,
+    fuse, gw_score, Fusion, GwMetric, GwPayload, PayloadSpec, ReciprocalStage, RerankStage,
+    SgwStage, TimeRule,
 };
 use crate::eval::cache::{hash_parts, unwrap_envelope, wrap_envelope, write_atomic, Cache};
 use crate::eval::manifest::Manifest;
@@ -45,9 +48,13 @@ pub fn parse_stage(s: &str) -> Result<RerankStage> {
         return serde_json::from_str(&text).map_err(|e| bad(e.to_string()));
     }
     let mut parts = t.split(':');
-    if parts.next() != Some("sgw") {
+    let kind = parts.next();
+    if kind == Some("recip") {
+        return parse_reciprocal(parts).map_err(bad);
+    }
+    if kind != Some("sgw") {
         return Err(bad(
-            "expected none, a JSON stage, or sgw:K[:key=value]...".into()
+            "expected none, a JSON stage, sgw:K[:key=value]... or recip:K[:key=value]...".into(),
         ));
     }
     let k: usize = parts
@@ -91,6 +98,39 @@ pub fn parse_stage(s: &str) -> Result<RerankStage> {
         }
     }
     Ok(RerankStage::SpectralGw(st))
+}
+
+/// `recip:K[:k=a,b,..][:expand=e][:lambda=l]` after the `recip` word.
+fn parse_reciprocal<'a>(
+    mut parts: impl Iterator<Item = &'a str>,
+) -> std::result::Result<RerankStage, String> {
+    let mut st = ReciprocalStage {
+        shortlist: parts
+            .next()
+            .ok_or("missing K")?
+            .parse()
+            .map_err(|_| "K must be an integer")?,
+        ..ReciprocalStage::default()
+    };
+    for kv in parts {
+        let (key, val) = kv
+            .split_once('=')
+            .ok_or_else(|| format!("'{kv}' is not key=value"))?;
+        let int = |v: &str| {
+            v.parse::<usize>()
+                .map_err(|_| format!("{key}: not an integer"))
+        };
+        match key {
+            "k" => st.neighbourhoods = val.split(',').map(int).collect::<Result<_, _>>()?,
+            "expand" => st.expansion = int(val)?,
+            "lambda" => {
+                st.original_weight = val.parse().map_err(|_| format!("{key}: not a number"))?
+            }
+            _ => return Err(format!("unknown key {key}")),
+        }
+    }
+    st.validate()?;
+    Ok(RerankStage::Reciprocal(st))
 }
 
 /// Payload of every manifest shape (`None` where the shape failed), from the cache or computed
@@ -166,12 +206,74 @@ pub struct RerankStats {
     pub per_query_ms: f64,
 }
 
+/// The reciprocal stage on every query: the shortlist's mutual dissimilarities are read from
+/// `base` (what the server computes with the first stage's scorer).
+fn reciprocal_matrix(
+    base: &[f64],
+    n: usize,
+    queries: &[usize],
+    orders: &[Vec<usize>],
+    stage: &ReciprocalStage,
+) -> (Vec<f64>, RerankStats) {
+    let k = stage.shortlist;
+    let t0 = Instant::now();
+    let rows: Vec<(Vec<(usize, f64)>, f64)> = queries
+        .par_iter()
+        .zip(orders)
+        .map(|(&q, order)| {
+            let t = Instant::now();
+            let items: Vec<usize> = std::iter::once(q)
+                .chain(order.iter().take(k).copied())
+                .collect();
+            let m = items.len();
+            let mut d = vec![0.0; m * m];
+            for (a, &i) in items.iter().enumerate() {
+                for (b, &j) in items.iter().enumerate() {
+                    if a != b {
+                        d[a * m + b] = base[i * n + j];
+                    }
+                }
+            }
+            let r = super::reciprocal::rerank(&d, m, stage);
+            (r, t.elapsed().as_secs_f64())
+        })
+        .collect();
+    let wall_s = t0.elapsed().as_secs_f64();
+    let mut out = vec![f64::NAN; n * n];
+    for ((&q, order), (r, _)) in queries.iter().zip(orders).zip(&rows) {
+        let row = &mut out[q * n..(q + 1) * n];
+        for (rank, &(i, _)) in r.iter().enumerate() {
+            row[order[i]] = rank as f64;
+        }
+        for (pos, &j) in order.iter().enumerate().skip(r.len()) {
+            row[j] = (k + pos) as f64;
+        }
+    }
+    let per_query_ms = if rows.is_empty() {
+        0.0
+    } else {
+        1e3 * rows.iter().map(|x| x.1).sum::<f64>() / rows.len() as f64
+    };
+    (
+        out,
+        RerankStats {
+            pairs: 0,
+            wall_s,
+            per_candidate_ms: 0.0,
+            per_query_ms,
+        },
+    )
+}
+
 /// GW values of solved (unordered) pairs, per payload key and solver options.
 pub type PairCache = HashMap<String, HashMap<(usize, usize), f64>>;
 
-/// Re-ranks every query row of `dist` (n × n, row = query) with `stage`; see the module docs for
-/// the values written.
+/// Re-ranks every query row of `dist` (n × n, row = query; the shortlist is each row's best `K`)
+/// with `stage`; see the module docs for the values written. `base` is the first stage's
+/// dissimilarity matrix (the same as `dist` unless earlier stages re-ordered it): a reciprocal
+/// stage compares the shortlist's members with it.
 pub fn rerank_matrix(
+    base: &[f64],
     dist: &[f64],
     n: usize,
     included: &[bool],
@@ -180,15 +282,16 @@ pub fn rerank_matrix(
     solved_pairs: &mut PairCache,
 ) -> (Vec<f64>, RerankStats) {
     let k = stage.shortlist_len();
-    let s: &SgwStage = match stage {
-        RerankStage::None => return (dist.to_vec(), RerankStats::default()),
-        RerankStage::SpectralGw(s) => s,
-    };
     let queries: Vec<usize> = (0..n).filter(|&i| included[i]).collect();
     let orders: Vec<Vec<usize>> = queries
         .par_iter()
         .map(|&q| metrics::rank(&dist[q * n..(q + 1) * n], q, Some(included)))
         .collect();
+    let s: &SgwStage = match stage {
+        RerankStage::None => return (dist.to_vec(), RerankStats::default()),
+        RerankStage::SpectralGw(s) => s,
+        RerankStage::Reciprocal(r) => return reciprocal_matrix(base, n, &queries, &orders, r),
+    };
     let mut pairs: Vec<(usize, usize)> = Vec::new();
     for (qi, &q) in queries.iter().enumerate() {
         for &j in orders[qi].iter().take(k) {

@@ -11,6 +11,8 @@
 //! * [`gw`]: entropic Gromov–Wasserstein with the square loss (Peyré–Cuturi–Solomon 2016,
 //!   decomposition trick with faer GEMM, stabilised Sinkhorn inner loop, product-measure init).
 //! * [`RerankStage`] + [`apply`]: what the server's search and `shapeseek eval --rerank` call.
+//! * [`reciprocal`]: a second kind of stage, k-reciprocal neighbourhood re-ranking of a shortlist
+//!   from the first stage's own dissimilarities between the candidates (no payload).
 //!
 //! Scores are symmetric by construction: the pair is always solved in a canonical order (the
 //! payload that compares lower first), so `score(a, b) == score(b, a)` bit for bit and a
@@ -19,9 +21,11 @@
 pub mod eval;
 pub mod gw;
 pub mod payload;
+pub mod reciprocal;
 
 pub use gw::{entropic_gw, GwOptions, GwResult};
 pub use payload::{compute_payload, GwMetric, GwPayload, PayloadSpec, TimeRule};
+pub use reciprocal::ReciprocalStage;
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -81,6 +85,8 @@ pub enum RerankStage {
     None,
     /// Spectral Gromov–Wasserstein re-ranking ([`SgwStage`]).
     SpectralGw(SgwStage),
+    /// Reciprocal-neighbourhood re-ranking ([`ReciprocalStage`], [`reciprocal`]).
+    Reciprocal(ReciprocalStage),
 }
 
 impl RerankStage {
@@ -89,13 +95,14 @@ impl RerankStage {
         match self {
             RerankStage::None => 0,
             RerankStage::SpectralGw(s) => s.shortlist,
+            RerankStage::Reciprocal(s) => s.shortlist,
         }
     }
 
     /// The payload every indexed shape needs (`None` when the stage needs none).
     pub fn payload_spec(&self) -> Option<&PayloadSpec> {
         match self {
-            RerankStage::None => None,
+            RerankStage::None | RerankStage::Reciprocal(_) => None,
             RerankStage::SpectralGw(s) => Some(&s.payload),
         }
     }
@@ -105,6 +112,21 @@ impl RerankStage {
         match self {
             RerankStage::None => "none".into(),
             RerankStage::SpectralGw(s) => format!("sgw:{}", s.shortlist),
+            RerankStage::Reciprocal(s) => {
+                let d = ReciprocalStage::default();
+                let mut l = format!("recip:{}", s.shortlist);
+                if s.neighbourhoods != d.neighbourhoods {
+                    let ks: Vec<String> = s.neighbourhoods.iter().map(|k| k.to_string()).collect();
+                    l.push_str(&format!(":k={}", ks.join(",")));
+                }
+                if s.expansion != d.expansion {
+                    l.push_str(&format!(":expand={}", s.expansion));
+                }
+                if s.original_weight != d.original_weight {
+                    l.push_str(&format!(":lambda={}", s.original_weight));
+                }
+                l
+            }
         }
     }
 }
@@ -177,6 +199,11 @@ pub fn gw_score(a: &GwPayload, b: &GwPayload, opts: &GwOptions) -> f64 {
 /// [`RerankStage::shortlist_len`]); the score is the GW energy ([`Fusion::Replace`]) or the
 /// blended rank ([`Fusion::RankBlend`]); ties keep the first-stage order. Candidates are scored
 /// in parallel (rayon); each GW solve is sequential, so results do not depend on the thread count.
+///
+/// # Panics
+///
+/// For [`RerankStage::Reciprocal`], which needs the candidates' mutual dissimilarities rather
+/// than payloads: call [`reciprocal::rerank`] instead.
 pub fn apply<I: Clone + Send + Sync>(
     stage: &RerankStage,
     query: &GwPayload,
@@ -187,6 +214,9 @@ pub fn apply<I: Clone + Send + Sync>(
             return shortlist.iter().map(|c| (c.id.clone(), c.score)).collect();
         }
         RerankStage::SpectralGw(s) => s,
+        RerankStage::Reciprocal(_) => {
+            panic!("rerank::apply: a reciprocal stage needs rerank::reciprocal::rerank")
+        }
     };
     let gw: Vec<f64> = shortlist
         .par_iter()
