@@ -629,7 +629,8 @@ fn ranking_equals_library_ranking() {
                 .map(|j| (score(&prepared[qi], &prepared[j], spec), j))
                 .collect();
             expected.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
-            let mut req = json!({"id": qid, "top_k": shapes.len(), "include_self": true});
+            let mut req =
+                json!({"id": qid, "top_k": shapes.len(), "include_self": true, "rerank": []});
             if !overrides.is_null() {
                 req["spec"] = overrides.clone();
             }
@@ -650,6 +651,41 @@ fn ranking_equals_library_ranking() {
                 assert_eq!(gid, &shapes[*ej].0, "order differs for query {qid}: {v}");
                 assert!((gs - es).abs() <= 1e-12 * es.abs().max(1.0), "{gs} vs {es}");
             }
+        }
+    }
+    // The default search (no `rerank` field) re-ranks by reciprocal neighbourhoods: the
+    // library's stage on the library's first-stage scores between the query and every other
+    // shape (the default shortlist holds them all).
+    let stage = shapeseek::rerank::ReciprocalStage::default();
+    assert!(stage.shortlist >= shapes.len());
+    for (qi, (qid, ..)) in shapes.iter().enumerate() {
+        let mut first: Vec<(f64, usize)> = (0..shapes.len())
+            .filter(|&j| j != qi)
+            .map(|j| (score(&prepared[qi], &prepared[j], &cfg.query), j))
+            .collect();
+        first.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+        let items: Vec<usize> = std::iter::once(qi)
+            .chain(first.iter().map(|x| x.1))
+            .collect();
+        let m = items.len();
+        let mut d = vec![0.0; m * m];
+        for (x, &i) in items.iter().enumerate() {
+            for (y, &j) in items.iter().enumerate() {
+                if x != y {
+                    d[x * m + y] = score(&prepared[i], &prepared[j], &cfg.query);
+                }
+            }
+        }
+        let expected = shapeseek::rerank::reciprocal::rerank(&d, m, &stage);
+        let v = post_json(a, "/v1/search", &json!({"id": qid, "top_k": shapes.len()})).json();
+        assert_eq!(v["stages"], json!(["scan", "reciprocal"]));
+        let hits = v["hits"].as_array().unwrap();
+        assert_eq!(hits.len(), expected.len());
+        for (h, &(c, es)) in hits.iter().zip(&expected) {
+            assert_eq!(h["id"], json!(shapes[items[c + 1]].0), "query {qid}: {v}");
+            let gs = h["score"].as_f64().unwrap();
+            assert!((gs - es).abs() <= 1e-12, "{gs} vs {es}");
+            assert_eq!(h["stage_scores"].as_array().unwrap().len(), 2);
         }
     }
     s.stop();
@@ -696,7 +732,12 @@ fn spectral_gw_stage_equals_library_scores() {
     };
     let stage = json!([{"stage": "spectral_gw", "shortlist": 4}]);
     for (qi, (qid, ..)) in shapes.iter().enumerate() {
-        let scan = post_json(a, "/v1/search", &json!({"id": qid, "top_k": 4})).json();
+        let scan = post_json(
+            a,
+            "/v1/search",
+            &json!({"id": qid, "top_k": 4, "rerank": []}),
+        )
+        .json();
         let r = post_json(
             a,
             "/v1/search",
@@ -757,6 +798,13 @@ fn spectral_gw_stage_equals_library_scores() {
         json!({"stage": "spectral_gw", "outer_iterations": 0}),
         json!({"stage": "spectral_gw", "blend": 1.5}),
         json!({"stage": "spectral_gw", "samples": 10}),
+        json!({"stage": "reciprocal", "shortlist": 0}),
+        json!({"stage": "reciprocal", "shortlist": 1001}),
+        json!({"stage": "reciprocal", "neighbourhoods": []}),
+        json!({"stage": "reciprocal", "neighbourhoods": [0, 8]}),
+        json!({"stage": "reciprocal", "expansion": 0}),
+        json!({"stage": "reciprocal", "original_weight": -0.1}),
+        json!({"stage": "reciprocal", "k": 8}),
     ] {
         post_json(a, "/v1/search", &json!({"id": qid, "rerank": [bad]}))
             .problem(400, "request.invalid");

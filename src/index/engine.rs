@@ -48,6 +48,10 @@ pub trait Engine: Send + Sync + 'static {
     fn prepare(&self, sig: &Self::Signature, cal: &Self::Calibration) -> Self::Prepared;
     /// The default query spec.
     fn default_query(&self) -> Self::Query;
+    /// The re-ranking stages a search applies when the request names none (none by default).
+    fn default_rerank(&self) -> Vec<crate::rerank::RerankStage> {
+        Vec::new()
+    }
     /// Checks a query spec against the signature spec (e.g. that its channels exist).
     fn validate_query(&self, q: &Self::Query) -> Result<()>;
     /// Dissimilarity of `candidate` to `query` under `spec`: lower is more similar.

@@ -91,6 +91,9 @@ impl Engine for FwEngine {
     fn default_query(&self) -> QuerySpec {
         self.config.query.clone()
     }
+    fn default_rerank(&self) -> Vec<crate::rerank::RerankStage> {
+        self.config.rerank.clone()
+    }
     fn validate_query(&self, q: &QuerySpec) -> Result<()> {
         let known = self.config.signature.channel_names();
         if q.channels.is_empty() {

@@ -1,7 +1,7 @@
 //! HTTP handlers: translate requests to [`App`] calls and results to JSON.
 
 use super::problem::ApiError;
-use super::state::{validate_tags, App, RerankStage, SearchOptions, Upload};
+use super::state::{validate_tags, App, SearchOptions, Upload};
 use crate::index::Engine;
 use crate::mesh::read::Format;
 use axum::body::Bytes;
@@ -380,7 +380,7 @@ pub async fn search<E: Engine>(
             ));
         }
         let hint = format_param(params.format.as_deref())?.or(hint);
-        let with_payload = opts.rerank.iter().any(RerankStage::needs_payload);
+        let with_payload = app.search_needs_payload(&opts);
         let q = app
             .analyze_query(
                 Upload {
@@ -419,7 +419,7 @@ pub async fn search<E: Engine>(
                     name: None,
                     tags: Vec::new(),
                 },
-                false,
+                app.search_needs_payload(&opts),
             )
             .await?;
         app.search(opts, Some(q)).await?

@@ -11,6 +11,7 @@ use crate::pipeline::analyze;
 use crate::rerank::{
     compute_payload, Candidate, Fusion, GwOptions, GwPayload, PayloadSpec, SgwStage,
 };
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
@@ -98,6 +99,10 @@ pub struct IngestResult {
 /// Most candidates a spectral Gromov–Wasserstein stage re-scores (≈ 40 ms of one core each).
 pub const MAX_GW_SHORTLIST: usize = 200;
 
+/// Most candidates a reciprocal-neighbourhood stage re-ranks (it scores every pair of them:
+/// 10⁶ first-stage scores at the limit).
+pub const MAX_RECIPROCAL_SHORTLIST: usize = 1000;
+
 /// One rerank stage of a search. Tagged by `stage`; each stage is a variant with its own
 /// fields.
 #[derive(Debug, Clone, Deserialize, Serialize)]
@@ -132,6 +137,23 @@ pub enum RerankStage {
         #[serde(default)]
         blend: Option<f64>,
     },
+    /// Reciprocal-neighbourhood re-ranking (`crate::rerank::reciprocal`): the best `shortlist`
+    /// candidates are re-ordered by how much their neighbourhoods (within the shortlist, under
+    /// the first stage's dissimilarity) overlap the query's. Part of the default search.
+    Reciprocal {
+        /// How many candidates to re-rank (default 200, at most [`MAX_RECIPROCAL_SHORTLIST`]).
+        #[serde(default)]
+        shortlist: Option<usize>,
+        /// Neighbourhood sizes averaged (default [8, 16, 32]; 1 to 8 sizes in 1..=1000).
+        #[serde(default)]
+        neighbourhoods: Option<Vec<usize>>,
+        /// Local query expansion (default 4, in 1..=100).
+        #[serde(default)]
+        expansion: Option<usize>,
+        /// Weight of the first-stage dissimilarity in the score (default 0.1, in [0, 1]).
+        #[serde(default)]
+        original_weight: Option<f64>,
+    },
 }
 
 impl RerankStage {
@@ -140,12 +162,8 @@ impl RerankStage {
         match self {
             RerankStage::Exact { .. } => "exact",
             RerankStage::SpectralGw { .. } => "spectral_gw",
+            RerankStage::Reciprocal { .. } => "reciprocal",
         }
-    }
-
-    /// True when the stage needs the query's re-ranking payload.
-    pub fn needs_payload(&self) -> bool {
-        matches!(self, RerankStage::SpectralGw { .. })
     }
 }
 
@@ -162,6 +180,24 @@ struct Entry {
 enum Plan<Q> {
     Exact(usize, Q),
     Gw(usize, crate::rerank::RerankStage),
+    Reciprocal(crate::rerank::ReciprocalStage),
+}
+
+impl<Q> Plan<Q> {
+    fn shortlist(&self) -> usize {
+        match self {
+            Plan::Exact(n, _) | Plan::Gw(n, _) => *n,
+            Plan::Reciprocal(r) => r.shortlist,
+        }
+    }
+
+    fn name(&self) -> &'static str {
+        match self {
+            Plan::Exact(..) => "exact",
+            Plan::Gw(..) => "spectral_gw",
+            Plan::Reciprocal(_) => "reciprocal",
+        }
+    }
 }
 
 /// A query analysed for search-by-example: signature, payload (when a stage needs it), timings.
@@ -184,9 +220,11 @@ pub struct SearchOptions {
     /// Only shapes having all of these tags.
     #[serde(default)]
     pub tags: Vec<String>,
-    /// Rerank stages applied in order after the scan.
+    /// Rerank stages applied in order after the scan. Absent: the index's default stages (the
+    /// product default re-ranks the top `max(200, top_k)` by reciprocal neighbourhoods); `[]`:
+    /// the scan's ranking alone.
     #[serde(default)]
-    pub rerank: Vec<RerankStage>,
+    pub rerank: Option<Vec<RerankStage>>,
     /// Keep the query shape itself among the hits (search by id; default false).
     #[serde(default)]
     pub include_self: bool,
@@ -613,6 +651,63 @@ impl<E: Engine> App<E> {
         }
     }
 
+    /// True when a search with `opts` runs a stage that compares re-ranking payloads (the
+    /// query's must then be computed with its signature).
+    pub fn search_needs_payload(&self, opts: &SearchOptions) -> bool {
+        match &opts.rerank {
+            Some(list) => list
+                .iter()
+                .any(|s| matches!(s, RerankStage::SpectralGw { .. })),
+            None => self
+                .engine
+                .default_rerank()
+                .iter()
+                .any(|s| s.payload_spec().is_some()),
+        }
+    }
+
+    /// Validates one requested stage into its plan.
+    fn plan(
+        &self,
+        st: &RerankStage,
+        top_k: usize,
+        spec_json: &serde_json::Value,
+    ) -> Result<Plan<E::Query>, ApiError> {
+        Ok(match st {
+            RerankStage::Exact { shortlist, spec: s } => {
+                let n = shortlist.unwrap_or(4 * top_k);
+                if n == 0 || n > self.cfg.max_top_k {
+                    return Err(ApiError::invalid(format!(
+                        "rerank shortlist must be in 1..={}",
+                        self.cfg.max_top_k
+                    )));
+                }
+                let (q, _) = self.query_spec(spec_json, s.as_ref())?;
+                Plan::Exact(n, q)
+            }
+            RerankStage::SpectralGw {
+                shortlist,
+                eps_rel,
+                outer_iterations,
+                blend,
+            } => {
+                let st = gw_stage(*shortlist, *eps_rel, *outer_iterations, *blend)?;
+                Plan::Gw(st.shortlist_len(), st)
+            }
+            RerankStage::Reciprocal {
+                shortlist,
+                neighbourhoods,
+                expansion,
+                original_weight,
+            } => Plan::Reciprocal(reciprocal_stage(
+                *shortlist,
+                neighbourhoods,
+                *expansion,
+                *original_weight,
+            )?),
+        })
+    }
+
     /// The effective query spec: `overrides` (a JSON object) merged over `base`.
     pub fn query_spec(
         &self,
@@ -685,32 +780,30 @@ impl<E: Engine> App<E> {
         let base = serde_json::to_value(self.engine.default_query()).map_err(ApiError::internal)?;
         let (spec, spec_json) = self.query_spec(&base, opts.spec.as_ref())?;
         let mut stages = Vec::new();
-        for st in &opts.rerank {
-            match st {
-                RerankStage::Exact { shortlist, spec: s } => {
-                    let n = shortlist.unwrap_or(4 * top_k);
-                    if n == 0 || n > self.cfg.max_top_k {
-                        return Err(ApiError::invalid(format!(
-                            "rerank shortlist must be in 1..={}",
-                            self.cfg.max_top_k
-                        )));
-                    }
-                    let (q, _) = self.query_spec(&spec_json, s.as_ref())?;
-                    stages.push(Plan::Exact(n, q));
+        match &opts.rerank {
+            Some(list) => {
+                if list.len() > 8 {
+                    return Err(ApiError::invalid("at most 8 rerank stages"));
                 }
-                RerankStage::SpectralGw {
-                    shortlist,
-                    eps_rel,
-                    outer_iterations,
-                    blend,
-                } => {
-                    let st = gw_stage(*shortlist, *eps_rel, *outer_iterations, *blend)?;
-                    stages.push(Plan::Gw(st.shortlist_len(), st));
+                for st in list {
+                    stages.push(self.plan(st, top_k, &spec_json)?);
                 }
             }
-        }
-        if opts.rerank.len() > 8 {
-            return Err(ApiError::invalid("at most 8 rerank stages"));
+            None => {
+                for st in self.engine.default_rerank() {
+                    match st {
+                        crate::rerank::RerankStage::None => {}
+                        crate::rerank::RerankStage::SpectralGw(g) => stages.push(Plan::Gw(
+                            g.shortlist,
+                            crate::rerank::RerankStage::SpectralGw(g),
+                        )),
+                        crate::rerank::RerankStage::Reciprocal(mut r) => {
+                            r.shortlist = r.shortlist.max(top_k);
+                            stages.push(Plan::Reciprocal(r))
+                        }
+                    }
+                }
+            }
         }
         let (query_sig, upload_payload, analysis_t) = match query_sig {
             Some((s, p, t)) => (Some(Arc::new(s)), p, Some(t)),
@@ -723,9 +816,9 @@ impl<E: Engine> App<E> {
         }
         let app = self.clone();
         let stage_names: Vec<String> = std::iter::once("scan".to_string())
-            .chain(opts.rerank.iter().map(|s| s.name().to_string()))
+            .chain(stages.iter().map(|p| p.name().to_string()))
             .collect();
-        let needs_payload = opts.rerank.iter().any(RerankStage::needs_payload);
+        let needs_payload = stages.iter().any(|p| matches!(p, Plan::Gw(..)));
         let (hits, epoch, candidates, scan_ms, rerank_ms) =
             tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
                 let read = || app.scan.read().unwrap_or_else(|p| p.into_inner());
@@ -769,9 +862,7 @@ impl<E: Engine> App<E> {
                 let candidates = (0..s.len()).filter(|&at| keep(at)).count();
                 let first_k = stages
                     .iter()
-                    .map(|p| match p {
-                        Plan::Exact(n, _) | Plan::Gw(n, _) => *n,
-                    })
+                    .map(Plan::shortlist)
                     .max()
                     .unwrap_or(0)
                     .max(top_k);
@@ -835,16 +926,44 @@ impl<E: Engine> App<E> {
                                 })
                                 .collect();
                             let order = crate::rerank::apply(stage, qp, &shortlist);
-                            let mut old: Vec<Option<Entry>> = list.into_iter().map(Some).collect();
-                            list = order
-                                .into_iter()
-                                .filter_map(|(i, score)| {
-                                    let mut e = old[i].take()?;
-                                    e.score = score;
-                                    e.stage_scores.push(score);
-                                    Some(e)
+                            list = reorder(list, order);
+                        }
+                        Plan::Reciprocal(stage) => {
+                            list.truncate(stage.shortlist);
+                            let s = match scan.as_ref() {
+                                Some(s) => s,
+                                None => {
+                                    let s = scan.insert(read());
+                                    list.retain_mut(|e| match s.position(&e.id) {
+                                        Some(at) => {
+                                            e.at = at;
+                                            true
+                                        }
+                                        None => false,
+                                    });
+                                    s
+                                }
+                            };
+                            // The query and the candidates, all against all, under the
+                            // request's (first-stage) query spec.
+                            let prepared = s.prepared();
+                            let items: Vec<&E::Prepared> = std::iter::once(&*query)
+                                .chain(list.iter().map(|e| &prepared[e.at]))
+                                .collect();
+                            let m = items.len();
+                            let d: Vec<f64> = (0..m * m)
+                                .into_par_iter()
+                                .map(|x| {
+                                    let (a, b) = (x / m, x % m);
+                                    if a == b {
+                                        0.0
+                                    } else {
+                                        app.engine.score(items[a], items[b], &spec)
+                                    }
                                 })
                                 .collect();
+                            let order = crate::rerank::reciprocal::rerank(&d, m, stage);
+                            list = reorder(list, order);
                         }
                     }
                 }
@@ -881,6 +1000,44 @@ impl<E: Engine> App<E> {
             },
         })
     }
+}
+
+/// A shortlist re-ordered by a stage: `order` = (index in `list`, new score), best first.
+fn reorder(list: Vec<Entry>, order: Vec<(usize, f64)>) -> Vec<Entry> {
+    let mut old: Vec<Option<Entry>> = list.into_iter().map(Some).collect();
+    order
+        .into_iter()
+        .filter_map(|(i, score)| {
+            let mut e = old[i].take()?;
+            e.score = score;
+            e.stage_scores.push(score);
+            Some(e)
+        })
+        .collect()
+}
+
+/// Validates the fields of a reciprocal stage into the library's stage.
+fn reciprocal_stage(
+    shortlist: Option<usize>,
+    neighbourhoods: &Option<Vec<usize>>,
+    expansion: Option<usize>,
+    original_weight: Option<f64>,
+) -> Result<crate::rerank::ReciprocalStage, ApiError> {
+    let d = crate::rerank::ReciprocalStage::default();
+    let st = crate::rerank::ReciprocalStage {
+        shortlist: shortlist.unwrap_or(d.shortlist),
+        neighbourhoods: neighbourhoods.clone().unwrap_or(d.neighbourhoods),
+        expansion: expansion.unwrap_or(d.expansion),
+        original_weight: original_weight.unwrap_or(d.original_weight),
+    };
+    if st.shortlist == 0 || st.shortlist > MAX_RECIPROCAL_SHORTLIST {
+        return Err(ApiError::invalid(format!(
+            "reciprocal shortlist must be in 1..={MAX_RECIPROCAL_SHORTLIST}"
+        )));
+    }
+    st.validate()
+        .map_err(|m| ApiError::invalid(format!("reciprocal {m}")))?;
+    Ok(st)
 }
 
 /// Validates the fields of a spectral-GW stage into the library's stage.
