@@ -56,6 +56,19 @@ pub trait Engine: Send + Sync + 'static {
     fn validate_query(&self, q: &Self::Query) -> Result<()>;
     /// Dissimilarity of `candidate` to `query` under `spec`: lower is more similar.
     fn score(&self, query: &Self::Prepared, candidate: &Self::Prepared, spec: &Self::Query) -> f64;
+    /// [`Engine::score`] of `query` against each of `candidates` (same values; an engine may
+    /// resolve the query once).
+    fn score_row(
+        &self,
+        query: &Self::Prepared,
+        candidates: &[&Self::Prepared],
+        spec: &Self::Query,
+    ) -> Vec<f64> {
+        candidates
+            .iter()
+            .map(|c| self.score(query, c, spec))
+            .collect()
+    }
     /// An accelerator over the scan's prepared array, kept in step with it by the scan index.
     type Table: ScanTable<Self::Prepared>;
 

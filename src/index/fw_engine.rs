@@ -111,6 +111,10 @@ impl Engine for FwEngine {
     fn score(&self, query: &Prepared, candidate: &Prepared, spec: &QuerySpec) -> f64 {
         ranking::score(query, candidate, spec)
     }
+    fn score_row(&self, query: &Prepared, candidates: &[&Prepared], spec: &QuerySpec) -> Vec<f64> {
+        let s = ranking::Scorer::new(query, spec);
+        candidates.iter().map(|c| s.score(c)).collect()
+    }
     fn top_k(
         &self,
         query: &Prepared,

@@ -82,7 +82,9 @@ impl ReciprocalStage {
 /// Scores of the candidates of one shortlist (module docs).
 ///
 /// `d` is the row-major `n × n` first-stage dissimilarity of the query (row and column 0) and its
-/// `n − 1` candidates; the diagonal is ignored. Returns one score per candidate (index `j − 1`
+/// `n − 1` candidates. Only the strict upper triangle is read (entry `(a, b)`, `a < b`, is the
+/// score of `b` with `a` as the query; the dissimilarities of [`crate::ranking`] are symmetric),
+/// so a caller may leave the rest unset. Returns one score per candidate (index `j − 1`
 /// for item `j`), lower = more similar. Deterministic: ties between equal dissimilarities are
 /// broken by item index, never by memory order or thread count.
 pub fn scores(d: &[f64], n: usize, stage: &ReciprocalStage) -> Vec<f64> {
@@ -90,10 +92,14 @@ pub fn scores(d: &[f64], n: usize, stage: &ReciprocalStage) -> Vec<f64> {
     if n <= 1 {
         return Vec::new();
     }
+    // The upper triangle, mirrored.
+    let at = |a: usize, b: usize| if a < b { d[a * n + b] } else { d[b * n + a] };
     // Row-normalised dissimilarity; the diagonal is 0.
     let mut dn = vec![0.0; n * n];
     for i in 0..n {
-        let row = &d[i * n..(i + 1) * n];
+        let row: Vec<f64> = (0..n)
+            .map(|j| if i == j { 0.0 } else { at(i, j) })
+            .collect();
         let max = (0..n)
             .filter(|&j| j != i && row[j].is_finite())
             .map(|j| row[j])

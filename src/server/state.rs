@@ -944,24 +944,21 @@ impl<E: Engine> App<E> {
                                     s
                                 }
                             };
-                            // The query and the candidates, all against all, under the
-                            // request's (first-stage) query spec.
+                            // The query and the candidates, each pair once (the upper
+                            // triangle), under the request's (first-stage) query spec.
                             let prepared = s.prepared();
                             let items: Vec<&E::Prepared> = std::iter::once(&*query)
                                 .chain(list.iter().map(|e| &prepared[e.at]))
                                 .collect();
                             let m = items.len();
-                            let d: Vec<f64> = (0..m * m)
+                            let rows: Vec<Vec<f64>> = (0..m)
                                 .into_par_iter()
-                                .map(|x| {
-                                    let (a, b) = (x / m, x % m);
-                                    if a == b {
-                                        0.0
-                                    } else {
-                                        app.engine.score(items[a], items[b], &spec)
-                                    }
-                                })
+                                .map(|a| app.engine.score_row(items[a], &items[a + 1..], &spec))
                                 .collect();
+                            let mut d = vec![0.0; m * m];
+                            for (a, row) in rows.iter().enumerate() {
+                                d[a * m + a + 1..(a + 1) * m].copy_from_slice(row);
+                            }
                             let order = crate::rerank::reciprocal::rerank(&d, m, stage);
                             list = reorder(list, order);
                         }
