@@ -809,6 +809,31 @@ fn spectral_gw_stage_equals_library_scores() {
         post_json(a, "/v1/search", &json!({"id": qid, "rerank": [bad]}))
             .problem(400, "request.invalid");
     }
+    // Stages chain in either order (the reciprocal stage re-takes the scan lock after GW);
+    // each re-orders the previous stage's list.
+    for (stages, names) in [
+        (
+            json!([{"stage": "reciprocal"}, {"stage": "spectral_gw", "shortlist": 3}]),
+            json!(["scan", "reciprocal", "spectral_gw"]),
+        ),
+        (
+            json!([{"stage": "spectral_gw", "shortlist": 4}, {"stage": "reciprocal"}]),
+            json!(["scan", "spectral_gw", "reciprocal"]),
+        ),
+    ] {
+        let r = post_json(
+            a,
+            "/v1/search",
+            &json!({"id": qid, "top_k": 3, "rerank": stages}),
+        );
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        let v = r.json();
+        assert_eq!(v["stages"], names);
+        assert_eq!(v["hits"].as_array().unwrap().len(), 3);
+        for h in v["hits"].as_array().unwrap() {
+            assert_eq!(h["stage_scores"].as_array().unwrap().len(), 3);
+        }
+    }
     s.stop();
 }
 
