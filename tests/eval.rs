@@ -621,26 +621,37 @@ fn end_to_end_on_generated_meshes_with_cache() {
     assert_eq!(ap1, ap3);
 }
 
-/// CI: the shared `bench/mini` split (24 shapes, 3 classes), default configuration.
-#[test]
-fn mini_bench_default_config_map_floor() {
-    let manifest = Path::new("../shared/bench/mini/manifest.csv");
-    if !manifest.is_file() {
-        println!("SKIPPED: ../shared/bench/mini not found");
-        return;
+/// `eval --config default` on `../shared/bench/<split>` from an empty cache (printed), or `None`
+/// after saying so when the shared data is not there.
+fn default_on_shared_split(split: &str) -> Option<shapeseek::eval::EvalOutcome> {
+    let manifest = format!("../shared/bench/{split}/manifest.csv");
+    if !Path::new(&manifest).is_file() {
+        println!("SKIPPED: ../shared/bench/{split} not found");
+        return None;
     }
     let tmp = tempfile::tempdir().unwrap();
-    let mut args = EvalArgs::new(manifest);
+    let mut args = EvalArgs::new(&manifest);
     args.config = Some("default".into());
     args.cache = Some(tmp.path().join("cache"));
     let out = run_eval(&args).unwrap();
     assert!(out.failures.is_empty(), "{:?}", out.failures);
-    let ev = out.result("default").unwrap();
-    let map = ev.group(ALL).unwrap().map.unwrap();
-    println!(
-        "mini, default config: mAP All = {:.4}\n{}",
-        map, out.markdown
-    );
+    println!("{split}, default config:\n{}", out.markdown);
+    Some(out)
+}
+
+/// CI: the shared `bench/mini` split (24 shapes, 3 classes), default configuration.
+#[test]
+fn mini_bench_default_config_map_floor() {
+    let Some(out) = default_on_shared_split("mini") else {
+        return;
+    };
+    let map = out
+        .result("default")
+        .unwrap()
+        .group(ALL)
+        .unwrap()
+        .map
+        .unwrap();
     assert!(
         map >= MINI_FLOOR,
         "mAP All {map} below the floor {MINI_FLOOR}"
@@ -653,18 +664,9 @@ fn mini_bench_default_config_map_floor() {
 /// isometry+topology 0.8183, `docs/quality.md` §7).
 #[test]
 fn dev_bench_default_config_meets_the_quality_bar() {
-    let manifest = Path::new("../shared/bench/dev/manifest.csv");
-    if !manifest.is_file() {
-        println!("SKIPPED: ../shared/bench/dev not found");
+    let Some(out) = default_on_shared_split("dev") else {
         return;
-    }
-    let tmp = tempfile::tempdir().unwrap();
-    let mut args = EvalArgs::new(manifest);
-    args.config = Some("default".into());
-    args.cache = Some(tmp.path().join("cache"));
-    let out = run_eval(&args).unwrap();
-    assert!(out.failures.is_empty(), "{:?}", out.failures);
-    println!("dev, default config:\n{}", out.markdown);
+    };
     let ev = out.result("default").unwrap();
     let map = ev.group(ALL).unwrap().map.unwrap();
     assert!(map >= 0.90, "mAP All {map} below 0.90");

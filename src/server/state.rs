@@ -821,8 +821,7 @@ impl<E: Engine> App<E> {
         let needs_payload = stages.iter().any(|p| matches!(p, Plan::Gw(..)));
         let (hits, epoch, candidates, scan_ms, rerank_ms) =
             tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
-                let read = || app.scan.read().unwrap_or_else(|p| p.into_inner());
-                let mut scan = Some(read());
+                let mut scan = Some(app.scan.read().unwrap_or_else(|p| p.into_inner()));
                 let s = scan.as_ref().expect("locked");
                 let Some(cal) = s.calibration().cloned() else {
                     if let Some(id) = &opts.id {
@@ -884,19 +883,7 @@ impl<E: Engine> App<E> {
                     match plan {
                         Plan::Exact(n, q) => {
                             list.truncate(*n);
-                            if scan.is_none() {
-                                // Re-locked after a stage that ran unlocked: positions may have
-                                // moved; shapes deleted meanwhile leave the list.
-                                let s = scan.insert(read());
-                                list.retain_mut(|e| match s.position(&e.id) {
-                                    Some(at) => {
-                                        e.at = at;
-                                        true
-                                    }
-                                    None => false,
-                                });
-                            }
-                            let s = scan.as_ref().expect("locked");
+                            let s = relocked(&mut scan, &app.scan, &mut list);
                             for e in list.iter_mut() {
                                 e.score = app.engine.score(&query, &s.prepared()[e.at], q);
                                 e.stage_scores.push(e.score);
@@ -930,20 +917,7 @@ impl<E: Engine> App<E> {
                         }
                         Plan::Reciprocal(stage) => {
                             list.truncate(stage.shortlist);
-                            let s = match scan.as_ref() {
-                                Some(s) => s,
-                                None => {
-                                    let s = scan.insert(read());
-                                    list.retain_mut(|e| match s.position(&e.id) {
-                                        Some(at) => {
-                                            e.at = at;
-                                            true
-                                        }
-                                        None => false,
-                                    });
-                                    s
-                                }
-                            };
+                            let s = relocked(&mut scan, &app.scan, &mut list);
                             // The query and the candidates, each pair once (the upper
                             // triangle), under the request's (first-stage) query spec.
                             let prepared = s.prepared();
@@ -997,6 +971,26 @@ impl<E: Engine> App<E> {
             },
         })
     }
+}
+
+/// The scan for a stage that needs it: the held guard, or, after a stage that ran unlocked, the
+/// lock taken again — positions may have moved and shapes deleted meanwhile leave `list`.
+fn relocked<'g, 'a, E: Engine>(
+    scan: &'g mut Option<std::sync::RwLockReadGuard<'a, ScanIndex<E>>>,
+    lock: &'a RwLock<ScanIndex<E>>,
+    list: &mut Vec<Entry>,
+) -> &'g ScanIndex<E> {
+    if scan.is_none() {
+        let s = scan.insert(lock.read().unwrap_or_else(|p| p.into_inner()));
+        list.retain_mut(|e| match s.position(&e.id) {
+            Some(at) => {
+                e.at = at;
+                true
+            }
+            None => false,
+        });
+    }
+    scan.as_ref().expect("locked")
 }
 
 /// A shortlist re-ordered by a stage: `order` = (index in `list`, new score), best first.
