@@ -266,6 +266,11 @@ pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
         for (i, item) in items.into_iter().enumerate() {
             let c: Config = serde_json::from_value(item)
                 .map_err(|e| Error::InvalidArgument(format!("config {spec}, entry {i}: {e}")))?;
+            for st in &c.rerank {
+                st.validate().map_err(|e| {
+                    Error::InvalidArgument(format!("config {spec}, entry {i}: rerank: {e}"))
+                })?;
+            }
             out.push(c);
         }
         if out.is_empty() {

@@ -34,6 +34,13 @@ const PAYLOAD_MAGIC: &[u8; 8] = b"SSGWPL01";
 
 /// Parses a `--rerank` value (see the module docs).
 pub fn parse_stage(s: &str) -> Result<RerankStage> {
+    let st = parse_stage_unchecked(s)?;
+    st.validate()
+        .map_err(|m| Error::InvalidArgument(format!("--rerank {s}: {m}")))?;
+    Ok(st)
+}
+
+fn parse_stage_unchecked(s: &str) -> Result<RerankStage> {
     let bad = |m: String| Error::InvalidArgument(format!("--rerank {s}: {m}"));
     let t = s.trim();
     if t == "none" {
@@ -129,7 +136,6 @@ fn parse_reciprocal<'a>(
             _ => return Err(format!("unknown key {key}")),
         }
     }
-    st.validate()?;
     Ok(RerankStage::Reciprocal(st))
 }
 

@@ -107,6 +107,15 @@ impl RerankStage {
         }
     }
 
+    /// Why the stage cannot run, if it cannot (the spectral-GW stage's options are bounded by
+    /// the server's API; here only the reciprocal stage's are checked).
+    pub fn validate(&self) -> Result<(), String> {
+        match self {
+            RerankStage::Reciprocal(r) => r.validate(),
+            RerankStage::None | RerankStage::SpectralGw(_) => Ok(()),
+        }
+    }
+
     /// Short label, e.g. `sgw:50`.
     pub fn label(&self) -> String {
         match self {

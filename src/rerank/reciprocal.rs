@@ -142,6 +142,10 @@ pub fn scores(d: &[f64], n: usize, stage: &ReciprocalStage) -> Vec<f64> {
     };
     let lambda = stage.original_weight;
     let sizes = effective_sizes(&stage.neighbourhoods, n);
+    if sizes.is_empty() {
+        // No neighbourhood size (an unvalidated stage): the first stage's order.
+        return dn[1..n].to_vec();
+    }
     let mut total = vec![0.0; n - 1];
     for &k in &sizes {
         let half = k.div_ceil(2);

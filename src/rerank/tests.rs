@@ -198,6 +198,35 @@ fn payload_round_trip_and_malformed_input() {
         other => panic!("{other:?}"),
     }
     assert!(eval::parse_stage("sgw:x").is_err());
+    // Reciprocal stage: short form, label and JSON agree; invalid values are refused in every form.
+    let r = eval::parse_stage("recip:100:k=4,8:expand=2:lambda=0.2").unwrap();
+    assert_eq!(
+        r,
+        RerankStage::Reciprocal(ReciprocalStage {
+            shortlist: 100,
+            neighbourhoods: vec![4, 8],
+            expansion: 2,
+            original_weight: 0.2,
+        })
+    );
+    assert_eq!(r.label(), "recip:100:k=4,8:expand=2:lambda=0.2");
+    assert_eq!(eval::parse_stage(&r.label()).unwrap(), r);
+    let d = RerankStage::Reciprocal(ReciprocalStage::default());
+    assert_eq!(d.label(), "recip:200");
+    assert_eq!(
+        eval::parse_stage(&serde_json::to_string(&d).unwrap()).unwrap(),
+        d
+    );
+    for bad in [
+        "recip:0",
+        "recip:100:k=",
+        "recip:100:k=0",
+        "recip:100:lambda=2",
+        "recip:100:q=1",
+        r#"{"kind":"reciprocal","shortlist":100,"neighbourhoods":[],"expansion":4,"original_weight":0.1}"#,
+    ] {
+        assert!(eval::parse_stage(bad).is_err(), "{bad}");
+    }
 }
 
 #[test]
