@@ -156,17 +156,6 @@ pub enum RerankStage {
     },
 }
 
-impl RerankStage {
-    /// Its name in `stages` of the answer.
-    pub fn name(&self) -> &'static str {
-        match self {
-            RerankStage::Exact { .. } => "exact",
-            RerankStage::SpectralGw { .. } => "spectral_gw",
-            RerankStage::Reciprocal { .. } => "reciprocal",
-        }
-    }
-}
-
 /// A search candidate between stages (`at`: position in the scan while it is locked).
 struct Entry {
     at: usize,
@@ -191,6 +180,7 @@ impl<Q> Plan<Q> {
         }
     }
 
+    /// The stage's name in `stages` of the answer (its `stage` tag in the request).
     fn name(&self) -> &'static str {
         match self {
             Plan::Exact(..) => "exact",
