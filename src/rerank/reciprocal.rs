@@ -21,11 +21,12 @@
 //!
 //! Why several `k`: a single `k` is a prior on how many relevant shapes a query has. On
 //! bench/dev (35 shapes per class) `k = 30` is the best single value, but it loses to the first
-//! stage when classes have 8 members, and `k = 8` is best there; the mean over `k ∈ {8, 16, 32}`
+//! stage when classes have 8 members, where k = 8 or 16 is best; the mean over `k ∈ {8, 16, 32}`
 //! gained at every class size measured (8, 15, 25, 35; docs/quality.md §7), i.e. it does not have
 //! to know the class size. The shortlist must be a few times larger than the largest relevant
-//! set (default 200), and every candidate–candidate dissimilarity in it is computed
-//! (`K²` first-stage scores, ≈ 40 000 for the default: milliseconds).
+//! set (default 200), and every pair in it is scored once (`K(K + 1)/2` first-stage scores,
+//! ≈ 20 000 for the default; the server's default search took p50 20.6 ms at 1 000 stored shapes,
+//! docs/quality.md §7).
 //!
 //! Written here rather than taken from a crate: no Rust crate implements this re-ranking, and
 //! its reference implementation (Python, for feature vectors) assumes Euclidean features, while
