@@ -366,40 +366,31 @@ pub async fn search<E: Engine>(
             ));
         }
         app.search(opts, None).await?
-    } else if is_multipart(&headers) {
-        let (bytes, hint, query) = read_multipart(&app, req, "query").await?;
-        let opts: SearchOptions = match query {
-            Some(b) => {
-                serde_json::from_slice(&b).map_err(|e| ApiError::invalid(format!("query: {e}")))?
-            }
-            None => SearchOptions::default(),
-        };
-        if opts.id.is_some() {
-            return Err(ApiError::invalid(
-                "give either an uploaded file or an id, not both",
-            ));
-        }
-        let hint = format_param(params.format.as_deref())?.or(hint);
-        let with_payload = app.search_needs_payload(&opts);
-        let q = app
-            .analyze_query(
-                Upload {
-                    bytes,
-                    hint,
-                    name: None,
-                    tags: Vec::new(),
-                },
-                with_payload,
-            )
-            .await?;
-        app.search(opts, Some(q)).await?
     } else {
-        let format = format_param(params.format.as_deref())?;
-        let (bytes, hint) = read_raw(&app, req, format).await?;
-        let opts = SearchOptions {
-            top_k: params.top_k,
-            tags: split_tags(params.tags.as_deref()),
-            ..Default::default()
+        // Search by example: a multipart file (+ optional `query` JSON part) or a raw body.
+        let (bytes, hint, opts) = if is_multipart(&headers) {
+            let (bytes, hint, query) = read_multipart(&app, req, "query").await?;
+            let opts: SearchOptions = match query {
+                Some(b) => serde_json::from_slice(&b)
+                    .map_err(|e| ApiError::invalid(format!("query: {e}")))?,
+                None => SearchOptions::default(),
+            };
+            if opts.id.is_some() {
+                return Err(ApiError::invalid(
+                    "give either an uploaded file or an id, not both",
+                ));
+            }
+            let hint = format_param(params.format.as_deref())?.or(hint);
+            (bytes, hint, opts)
+        } else {
+            let format = format_param(params.format.as_deref())?;
+            let (bytes, hint) = read_raw(&app, req, format).await?;
+            let opts = SearchOptions {
+                top_k: params.top_k,
+                tags: split_tags(params.tags.as_deref()),
+                ..Default::default()
+            };
+            (bytes, hint, opts)
         };
         // Validate cheap options before the expensive analysis.
         validate_tags(&opts.tags)?;
