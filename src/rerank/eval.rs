@@ -232,12 +232,11 @@ fn reciprocal_matrix(
                 .chain(order.iter().take(k).copied())
                 .collect();
             let m = items.len();
+            // The stage reads the upper triangle only.
             let mut d = vec![0.0; m * m];
             for (a, &i) in items.iter().enumerate() {
-                for (b, &j) in items.iter().enumerate() {
-                    if a != b {
-                        d[a * m + b] = base[i * n + j];
-                    }
+                for (b, &j) in items.iter().enumerate().skip(a + 1) {
+                    d[a * m + b] = base[i * n + j];
                 }
             }
             let r = super::reciprocal::rerank(&d, m, stage);

@@ -149,26 +149,27 @@ pub fn scores(d: &[f64], n: usize, stage: &ReciprocalStage) -> Vec<f64> {
     }
     let mut total = vec![0.0; n - 1];
     for &k in &sizes {
-        let half = k.div_ceil(2);
+        // R(c, ⌈k/2⌉) of every item, computed once (each is read by every set it belongs to).
+        let halves: Vec<Vec<usize>> = (0..n).map(|c| reciprocal(c, k.div_ceil(2))).collect();
         // Encodings V_i (dense rows).
         let mut v = vec![0.0; n * n];
+        let mut in_rec = vec![false; n];
         let mut member = vec![false; n];
         for i in 0..n {
             let rec = reciprocal(i, k);
-            member.iter_mut().for_each(|m| *m = false);
+            in_rec.iter_mut().for_each(|m| *m = false);
             for &j in &rec {
-                member[j] = true;
+                in_rec[j] = true;
             }
-            let mut set = rec.clone();
+            member.copy_from_slice(&in_rec);
             for &c in &rec {
-                let rc = reciprocal(c, half);
-                let shared = rc.iter().filter(|&&j| rec.contains(&j)).count();
+                let rc = &halves[c];
+                let shared = rc.iter().filter(|&&j| in_rec[j]).count();
                 if 3 * shared > 2 * rc.len() {
-                    set.extend(rc);
+                    for &j in rc {
+                        member[j] = true;
+                    }
                 }
-            }
-            for &j in &set {
-                member[j] = true;
             }
             let row = &mut v[i * n..(i + 1) * n];
             let mut sum = 0.0;
