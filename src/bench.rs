@@ -396,8 +396,8 @@ fn timed<T>(f: impl FnOnce() -> T) -> (T, f64, f64) {
 }
 
 fn run_signature(b: &SignatureBench) -> Result<()> {
-    use shapeseek::pipeline::{analyze, AnalyzeOptions};
     use shapeseek::signature::{compute_signature, ChannelSpec, Norm, SignatureSpec};
+    use shapeseek::spectrum::{analyze, AnalyzeOptions};
     let (nu, nv) = grid(b.size);
     let mesh = generate::bumpy_torus(nu, nv);
     let opts = AnalyzeOptions {
@@ -483,9 +483,9 @@ fn synthetic_bases(
     spec: &SignatureSpec,
     payloads: bool,
 ) -> Result<Vec<(Signature, Option<shapeseek::rerank::GwPayload>)>> {
-    use shapeseek::pipeline::{analyze, AnalyzeOptions};
     use shapeseek::rerank::{compute_payload, PayloadSpec};
     use shapeseek::signature::compute_signature;
+    use shapeseek::spectrum::{analyze, AnalyzeOptions};
     (0..SYNTHETIC_BASES)
         .into_par_iter()
         .map(|j| {

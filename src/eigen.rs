@@ -76,7 +76,8 @@ pub enum Method {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(default)]
 pub struct EigenOptions {
-    /// Number of eigenpairs wanted (clamped to n).
+    /// Number of eigenpairs wanted. A problem with fewer unknowns (`n < k`) is refused with
+    /// [`Error::TooFewEigenpairs`] unless [`EigenOptions::allow_fewer`] is set.
     pub k: usize,
     /// Maximal accepted relative residual of every pair (see the module docs).
     pub tolerance: f64,
@@ -86,6 +87,11 @@ pub struct EigenOptions {
     pub block_size: usize,
     /// Maximal number of restarts before giving up with [`Error::Numerical`].
     pub max_restarts: usize,
+    /// Return all `n` eigenpairs when the problem has fewer than `k` unknowns, instead of
+    /// refusing it. Serde: omitted when false, so the JSON (and every cache key built from it)
+    /// of the default options is unchanged.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub allow_fewer: bool,
 }
 
 impl Default for EigenOptions {
@@ -96,6 +102,7 @@ impl Default for EigenOptions {
             method: Method::Auto,
             block_size: 0,
             max_restarts: 200,
+            allow_fewer: false,
         }
     }
 }
@@ -141,7 +148,8 @@ pub struct Eigenpairs {
 /// The `opts.k` smallest eigenpairs of `L φ = λ A φ` (`A = diag(mass)`).
 ///
 /// Errors: [`Error::InvalidArgument`] for inconsistent sizes, non-positive or non-finite mass;
-/// [`Error::Numerical`] if the factorisation fails or the residual bound is not met.
+/// [`Error::TooFewEigenpairs`] when `n < k` (unless `opts.allow_fewer`); [`Error::Numerical`] if
+/// the factorisation fails or the residual bound is not met.
 pub fn smallest_eigenpairs(
     stiffness: &SparseColMat<usize, f64>,
     mass: &[f64],
@@ -168,6 +176,12 @@ pub fn smallest_eigenpairs(
         return Err(Error::InvalidArgument(
             "stiffness has non-finite entries".into(),
         ));
+    }
+    if opts.k > n && !opts.allow_fewer {
+        return Err(Error::TooFewEigenpairs {
+            asked: opts.k,
+            found: n,
+        });
     }
     let k = opts.k.clamp(1, n);
     let area: f64 = mass.iter().sum();

@@ -85,12 +85,39 @@ pub enum Error {
     /// The numerical core failed (factorisation, convergence, residual check).
     #[error("numerical failure: {0}")]
     Numerical(String),
+    /// The eigensolver returned fewer eigenpairs than asked (the mesh has fewer vertices than
+    /// `k`). Refused unless [`crate::eigen::EigenOptions::allow_fewer`] is set.
+    #[error(
+        "too few eigenpairs: {asked} asked, {found} found (the prepared mesh has too few \
+         vertices for the requested spectrum)"
+    )]
+    TooFewEigenpairs {
+        /// Eigenpairs requested (`k`).
+        asked: usize,
+        /// Eigenpairs the problem has (its number of unknowns).
+        found: usize,
+    },
     /// An argument or specification is invalid.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),
     /// An I/O error while reading or writing a file.
     #[error("I/O: {0}")]
     Io(#[from] std::io::Error),
+    /// The storage backend (the index database) failed to open, read, write or flush, or holds
+    /// an index this build cannot use as it is (another version, another program's data).
+    #[error("storage: {0}")]
+    Storage(String),
+    /// Stored data could not be decoded: a signature, payload, record or file whose bytes are
+    /// not what was written.
+    #[error("corrupt {what}{}: {detail}", id.as_ref().map(|i| format!(" of {i}")).unwrap_or_default())]
+    Corrupt {
+        /// What was being decoded (`signature`, `shape record`, ...).
+        what: &'static str,
+        /// The stored item it belongs to (a shape id), when known.
+        id: Option<String>,
+        /// What is wrong with it.
+        detail: String,
+    },
 }
 
 impl Error {
@@ -108,8 +135,20 @@ impl Error {
             Error::EmptyMesh(_) => "mesh.empty",
             Error::NonFinite { .. } => "mesh.non_finite",
             Error::Numerical(_) => "spectrum.numerical",
+            Error::TooFewEigenpairs { .. } => "spectrum.too_few_eigenpairs",
             Error::InvalidArgument(_) => "request.invalid",
             Error::Io(_) => "io",
+            Error::Storage(_) => "storage",
+            Error::Corrupt { .. } => "storage.corrupt",
+        }
+    }
+
+    /// Shorthand for a [`Error::Corrupt`] error.
+    pub fn corrupt(what: &'static str, id: Option<&str>, detail: impl Into<String>) -> Self {
+        Error::Corrupt {
+            what,
+            id: id.map(str::to_string),
+            detail: detail.into(),
         }
     }
 

@@ -5,7 +5,6 @@
 //! lumped mass) → [`eigen`] (k smallest generalized eigenpairs) → [`spectrum::Spectrum`]. The core
 //! is pure synchronous Rust: no HTTP, no storage.
 
-pub mod baseline;
 mod bytes;
 pub mod eigen;
 pub mod error;
@@ -13,7 +12,6 @@ pub mod eval;
 pub mod index;
 pub mod laplace;
 pub mod mesh;
-pub mod pipeline;
 pub mod ranking;
 pub mod rerank;
 pub mod scale;

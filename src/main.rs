@@ -6,7 +6,7 @@ use shapeseek::eigen::{EigenOptions, Method};
 use shapeseek::laplace::LaplacianKind;
 use shapeseek::mesh::prepare::{ComponentPolicy, PrepareOptions};
 use shapeseek::mesh::{generate, read_mesh, Format, Mesh, ReadLimits};
-use shapeseek::pipeline::{analyze, AnalyzeOptions};
+use shapeseek::spectrum::{analyze, AnalyzeOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
@@ -270,11 +270,13 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error [{}]: {e}", e.code());
-            ExitCode::from(if matches!(e, shapeseek::Error::Io(_)) {
-                74
-            } else {
-                65
-            })
+            ExitCode::from(
+                if matches!(e, shapeseek::Error::Io(_) | shapeseek::Error::Storage(_)) {
+                    74
+                } else {
+                    65
+                },
+            )
         }
     }
 }

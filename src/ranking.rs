@@ -22,7 +22,7 @@
 //!    are channel kinds of the signature ([`crate::signature::ChannelKind`]).
 //!
 //! ```no_run
-//! use shapeseek::pipeline::{analyze, AnalyzeOptions};
+//! use shapeseek::spectrum::{analyze, AnalyzeOptions};
 //! use shapeseek::ranking::{calibrate, default_config, prepare_for_ranking, rank};
 //! use shapeseek::signature::compute_signature;
 //! # fn main() -> shapeseek::Result<()> {

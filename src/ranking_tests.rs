@@ -310,7 +310,7 @@ fn presets_are_consistent() {
 #[test]
 fn end_to_end_ranking() {
     use crate::mesh::generate;
-    use crate::pipeline::{analyze, AnalyzeOptions};
+    use crate::spectrum::{analyze, AnalyzeOptions};
     let mut opts = AnalyzeOptions::default();
     opts.eigen.k = 60;
     let sphere = generate::bumpy_sphere(3, 0.2);

@@ -22,9 +22,8 @@
 //! like `λ^{-1/2}`, and the cotangent operator's discretisation error grows with `λ h²`. A fit
 //! over the first 29 non-zero modes therefore gives a unit square 1.28 (1.42–1.49 on
 //! 144–196-vertex grids) against 0.97–1.0 (1.08–1.14) for closed spheres and tori, while over
-//! 99 modes the bench's open shapes get ≈ 1.1–1.2. The band was also measured to matter for
-//! retrieval (bench/dev, `docs/quality.md` §2c: fitting over the first 10 / 30 / 99 modes gives
-//! All mAP 78.9 / 86.2 / 84.3, and the class split does not confirm any band other than 99).
+//! 99 modes the bench's open shapes get ≈ 1.1–1.2. The band also matters for retrieval (the
+//! measurements are in `docs/quality.md` §2c).
 //! [`SpectrumScaling::WeylFit`]`{ eigenpairs: Some(m) }` therefore fixes the band: the
 //! non-zero modes among the first `m` eigenpairs, whatever `k` the index computed, and **no
 //! scaling** (factor 1, i.e. the leading-order Weyl law `λ_i ≈ 4π i / A` the unit-area
@@ -34,8 +33,7 @@
 //! Scaling only the eigenvalues (not the eigenfunctions) relabels time: distances computed at
 //! time `t` on the rescaled spectrum are the distances at time `t · c` on the original one.
 
-use crate::pipeline::Analysis;
-use crate::signature::ZERO_MODE_TOLERANCE;
+use crate::spectrum::{Analysis, ZERO_MODE_TOLERANCE};
 use serde::{Deserialize, Serialize};
 
 /// How the spectrum is rescaled before kernels are evaluated.
@@ -175,19 +173,6 @@ mod tests {
             SpectrumScaling::WeylFit {
                 eigenpairs: Some(100)
             }
-        );
-    }
-}
-
-#[cfg(test)]
-mod print_configs {
-    /// Prints the default configuration as JSON (for writing eval config files).
-    #[test]
-    #[ignore]
-    fn print_default_config_json() {
-        println!(
-            "{}",
-            serde_json::to_string(&crate::ranking::default_config()).unwrap()
         );
     }
 }

@@ -1,6 +1,22 @@
-//! The Laplace–Beltrami spectrum of a prepared mesh (paper §2.2, §4).
+//! The Laplace–Beltrami spectrum of a prepared mesh (paper §2.2, §4), and [`analyze`], the one
+//! front half of every use of the library: mesh → prepared mesh ([`crate::mesh::prepare`]) →
+//! Laplacian ([`crate::laplace`]) → eigenpairs ([`crate::eigen`]) → [`Spectrum`].
+//!
+//! The CLI, the evaluation harness and the server all call [`analyze`]; there is no second
+//! implementation of these steps anywhere.
 
+use crate::eigen::{smallest_eigenpairs, EigenOptions, EigenStats};
+use crate::laplace::{laplacian, LaplacianKind};
+use crate::mesh::prepare::{prepare, PrepareOptions, PrepareReport};
+use crate::mesh::Mesh;
 use faer::Mat;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Eigenvalues `λ ≤ ZERO_MODE_TOLERANCE · 4π / area` are zero modes (λ_0 of each component):
+/// kernels give them weight 0 ([`crate::signature`]) and scale fits leave them out
+/// ([`crate::scale`]).
+pub const ZERO_MODE_TOLERANCE: f64 = 1e-6;
 
 /// The k smallest eigenpairs of `L φ = λ A φ` (paper eq. 22 in matrix form), with `L` the
 /// cotangent stiffness matrix and `A` the lumped (barycentric) mass of the mesh they came from.
@@ -16,12 +32,6 @@ pub struct Spectrum {
     /// Relative residual of each pair, `‖Lφ − λAφ‖₂ / ((|λ| + λ_ref) ‖Aφ‖₂)`, see [`crate::eigen`].
     pub residuals: Vec<f64>,
 }
-
-use crate::eigen::{smallest_eigenpairs, EigenOptions, EigenStats};
-use crate::laplace::{laplacian, LaplacianKind};
-use crate::mesh::Mesh;
-use serde::{Deserialize, Serialize};
-use std::time::Instant;
 
 /// Wall-clock milliseconds per stage of [`compute_spectrum`].
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
@@ -68,4 +78,65 @@ pub fn compute_spectrum_with(
         pairs.stats,
         timings,
     ))
+}
+
+/// Options of [`analyze`].
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(default)]
+pub struct AnalyzeOptions {
+    /// Cleaning and normalisation.
+    pub prepare: PrepareOptions,
+    /// Eigensolver (number of pairs `k`, tolerance, method).
+    pub eigen: EigenOptions,
+    /// Discretisation of the Laplace–Beltrami operator (cotangent by default).
+    pub laplacian: LaplacianKind,
+}
+
+/// Milliseconds per stage.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct StageTimings {
+    /// Cleaning, components, normalisation.
+    pub prepare_ms: f64,
+    /// Laplacian assembly.
+    pub laplacian_ms: f64,
+    /// Factorisation of the shifted operator.
+    pub factorization_ms: f64,
+    /// Eigen-iteration.
+    pub eigensolve_ms: f64,
+}
+
+/// A prepared mesh and its spectrum.
+#[derive(Debug, Clone)]
+pub struct Analysis {
+    /// The mesh after preparation (unit area unless disabled).
+    pub mesh: Mesh,
+    /// What preparation found and changed.
+    pub report: PrepareReport,
+    /// The Laplace–Beltrami spectrum of `mesh`.
+    pub spectrum: Spectrum,
+    /// Solver statistics.
+    pub eigen_stats: EigenStats,
+    /// Time per stage.
+    pub timings: StageTimings,
+}
+
+/// Prepares `mesh` and computes its spectrum.
+pub fn analyze(mesh: &Mesh, opts: &AnalyzeOptions) -> crate::Result<Analysis> {
+    let t0 = Instant::now();
+    let (prepared, report) = prepare(mesh, &opts.prepare)?;
+    let prepare_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let (spectrum, eigen_stats, st) =
+        compute_spectrum_with(&prepared, opts.laplacian, &opts.eigen)?;
+    Ok(Analysis {
+        mesh: prepared,
+        report,
+        spectrum,
+        eigen_stats,
+        timings: StageTimings {
+            prepare_ms,
+            laplacian_ms: st.laplacian_ms,
+            factorization_ms: st.factorization_ms,
+            eigensolve_ms: st.eigensolve_ms,
+        },
+    })
 }

@@ -29,9 +29,9 @@ pub mod plot;
 pub mod report;
 
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
-use crate::pipeline::{analyze, AnalyzeOptions};
 use crate::ranking::{self, Config, Prepared, QuerySpec};
 use crate::signature::{compute_signature, Signature, SignatureSpec};
+use crate::spectrum::{analyze, AnalyzeOptions};
 use crate::{Error, Result};
 use cache::{hash_parts, Cache};
 use manifest::Manifest;

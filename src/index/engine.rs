@@ -6,7 +6,7 @@
 //! the same calls the evaluation harness makes, so a ranking by the server equals the one of
 //! `eval` for the same query spec and the same calibration.
 
-use crate::pipeline::{Analysis, AnalyzeOptions};
+use crate::spectrum::{Analysis, AnalyzeOptions};
 use crate::Result;
 use serde::de::DeserializeOwned;
 use serde::Serialize;

@@ -2,9 +2,9 @@
 //! `crate::ranking`), exactly the calls the evaluation harness makes.
 
 use super::engine::{Engine, ScanTable};
-use crate::pipeline::{Analysis, AnalyzeOptions};
 use crate::ranking::{self, Calibration, Config, Prepared, QuerySpec};
 use crate::signature::{compute_signature, Signature};
+use crate::spectrum::{Analysis, AnalyzeOptions};
 use crate::topk::BoundTable;
 use crate::{Error, Result};
 
@@ -14,7 +14,7 @@ use crate::{Error, Result};
 pub struct FwEngine {
     /// Signature spec and default query spec.
     pub config: Config,
-    /// Preparation and eigensolver options of [`crate::pipeline::analyze`].
+    /// Preparation and eigensolver options of [`crate::spectrum::analyze`].
     pub analyze: AnalyzeOptions,
 }
 

@@ -67,7 +67,7 @@ fn add_payloads(db: &sled::Db) -> Result<()> {
                 Format::from_extension(&rec.format),
                 &ReadLimits::unlimited(),
             )?;
-            let analysis = crate::pipeline::analyze(&mesh, &options)?;
+            let analysis = crate::spectrum::analyze(&mesh, &options)?;
             Ok(compute_payload(&analysis, &spec)?.to_bytes())
         })();
         match payload {

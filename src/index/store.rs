@@ -15,6 +15,11 @@
 //! | `by_hash` | SHA-256 of the upload (32 bytes) | id |
 //! | `payloads` | id | spectral Gromov–Wasserstein payload (`rerank::GwPayload::to_bytes`) |
 //!
+//! Errors: failures of sled itself (open, read, write, transaction, flush) and an index this build
+//! cannot use as it is (another schema version, foreign data) are [`Error::Storage`]; stored bytes
+//! that do not decode (a shape record, the schema version, a shape without its signature) are
+//! [`Error::Corrupt`] with the shape id.
+//!
 //! Ids are 16 lower-case hex digits of a monotonic counter, so key order is ingest order.
 //! A shape is written by one sled transaction over the five data trees, then the database is
 //! flushed before the caller acknowledges it: after a crash a shape is wholly there or absent.
@@ -88,9 +93,18 @@ fn get_bytes(tree: &sled::Tree, key: &str) -> Result<Option<Vec<u8>>> {
         .map(|v| v.to_vec()))
 }
 
-/// Maps a sled error to the library error (storage failures are I/O failures).
+/// Maps a sled (or transaction) failure to [`Error::Storage`].
 pub fn storage_err(e: impl std::fmt::Display) -> Error {
-    Error::Io(std::io::Error::other(format!("index storage: {e}")))
+    Error::Storage(format!("index: {e}"))
+}
+
+/// A stored shape record that does not decode: [`Error::Corrupt`].
+fn corrupt_record(id: &[u8], e: impl std::fmt::Display) -> Error {
+    Error::corrupt(
+        "shape record",
+        Some(&String::from_utf8_lossy(id)),
+        e.to_string(),
+    )
 }
 
 /// Opens the sled database at `path`, with a clear message when another process holds it.
@@ -115,10 +129,11 @@ pub fn read_schema_version(db: &sled::Db) -> Result<Option<u32>> {
         None => Ok(None),
         Some(v) => {
             let b: [u8; 4] = v.as_ref().try_into().map_err(|_| {
-                Error::InvalidArgument(format!(
-                    "index: schema_version has {} bytes, expected 4: not a shapeseek index",
-                    v.len()
-                ))
+                Error::corrupt(
+                    "schema_version",
+                    None,
+                    format!("{} bytes, expected 4: not a shapeseek index", v.len()),
+                )
             })?;
             Ok(Some(u32::from_be_bytes(b)))
         }
@@ -161,7 +176,7 @@ impl Store {
                 for t in ["shapes", "signatures", "meshes", "by_hash", "payloads"] {
                     let tree = db.open_tree(t).map_err(storage_err)?;
                     if !tree.is_empty() {
-                        return Err(Error::InvalidArgument(format!(
+                        return Err(Error::Storage(format!(
                             "index at {} has data but no schema_version: unknown format, refusing",
                             dir.display()
                         )));
@@ -175,7 +190,7 @@ impl Store {
                 db.flush().map_err(storage_err)?;
             }
             Some(v) if v < SCHEMA_VERSION => {
-                return Err(Error::InvalidArgument(format!(
+                return Err(Error::Storage(format!(
                     "index at {} has schema version {v}, this build uses {SCHEMA_VERSION}: \
                      run `shapeseek migrate --data {}` first (it backs the index up)",
                     dir.display(),
@@ -183,7 +198,7 @@ impl Store {
                 )))
             }
             Some(v) => {
-                return Err(Error::InvalidArgument(format!(
+                return Err(Error::Storage(format!(
                     "index at {} has schema version {v}, newer than this build's \
                      {SCHEMA_VERSION}: refusing to open it (use a newer shapeseek)",
                     dir.display()
@@ -342,7 +357,9 @@ impl Store {
     pub fn get(&self, id: &str) -> Result<Option<ShapeRecord>> {
         match self.shapes.get(id.as_bytes()).map_err(storage_err)? {
             None => Ok(None),
-            Some(v) => Ok(Some(serde_json::from_slice(&v).map_err(storage_err)?)),
+            Some(v) => Ok(Some(
+                serde_json::from_slice(&v).map_err(|e| corrupt_record(id.as_bytes(), e))?,
+            )),
         }
     }
 
@@ -390,8 +407,8 @@ impl Store {
         };
         let mut out = Vec::new();
         for kv in iter {
-            let (_, v) = kv.map_err(storage_err)?;
-            let rec: ShapeRecord = serde_json::from_slice(&v).map_err(storage_err)?;
+            let (k, v) = kv.map_err(storage_err)?;
+            let rec: ShapeRecord = serde_json::from_slice(&v).map_err(|e| corrupt_record(&k, e))?;
             if let Some(t) = tag {
                 if !rec.tags.iter().any(|x| x == t) {
                     continue;
@@ -410,12 +427,14 @@ impl Store {
         let mut out = Vec::new();
         for kv in self.shapes.iter() {
             let (k, v) = kv.map_err(storage_err)?;
-            let rec: ShapeRecord = serde_json::from_slice(&v).map_err(storage_err)?;
+            let rec: ShapeRecord = serde_json::from_slice(&v).map_err(|e| corrupt_record(&k, e))?;
             let sig = self
                 .signatures
                 .get(&k)
                 .map_err(storage_err)?
-                .ok_or_else(|| storage_err(format!("shape {} has no signature", rec.id)))?;
+                .ok_or_else(|| {
+                    Error::corrupt("index", Some(&rec.id), "the shape has no signature")
+                })?;
             out.push((rec, sig.to_vec()));
         }
         Ok(out)

@@ -24,7 +24,7 @@ use crate::eval::cache::{hash_parts, unwrap_envelope, wrap_envelope, write_atomi
 use crate::eval::manifest::Manifest;
 use crate::eval::metrics;
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
-use crate::pipeline::{analyze, AnalyzeOptions};
+use crate::spectrum::{analyze, AnalyzeOptions};
 use crate::{Error, Result};
 use rayon::prelude::*;
 use std::collections::HashMap;

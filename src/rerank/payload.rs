@@ -16,8 +16,8 @@
 //!   scale: 80 KB per shape.
 
 use crate::bytes::{put_f32s, put_f64, put_f64s, put_u64, ByteReader};
-use crate::pipeline::Analysis;
 use crate::signature::{farthest_points, EdgeGraph, ZERO_MODE_TOLERANCE};
+use crate::spectrum::Analysis;
 use crate::{Error, Result};
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, Par};

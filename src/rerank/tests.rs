@@ -1,6 +1,6 @@
 use super::*;
 use crate::mesh::{generate, Mesh};
-use crate::pipeline::{analyze, AnalyzeOptions};
+use crate::spectrum::{analyze, AnalyzeOptions};
 use faer::Mat;
 
 /// Deterministic pseudo-random numbers in [0, 1) (SplitMix64).

@@ -1,4 +1,15 @@
 //! Errors as `application/problem+json` (RFC 9457) with a stable machine-readable `code`.
+//!
+//! Library errors ([`crate::Error`]) keep their own code ([`crate::Error::code`]) and get their
+//! status from [`ApiError::status_of`]: `limit.*` 413, `mesh.format` 415, `mesh.parse`,
+//! `mesh.external_reference`, `mesh.empty`, `mesh.non_finite`, `spectrum.numerical`,
+//! `spectrum.too_few_eigenpairs` 422, `request.invalid` 400. I/O, storage and corruption
+//! failures (`io`, `storage`, `storage.corrupt`) are the server's fault: 500 `server.internal`,
+//! with the library code and message in the log only. The server's own codes are
+//! `shape.not_found` (404), `server.busy` (503 with `Retry-After`), `server.internal` (500),
+//! those its handlers raise (`shape.no_payload`, `server.not_ready`, ...) and, for statuses the HTTP layer produced without a body ([`code_for_status`]), `route.not_found`,
+//! `request.method_not_allowed`, `limit.bytes`, `request.unsupported_media_type`,
+//! `request.timeout`, `server.unavailable`, `server.internal` and `request.invalid`.
 
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -77,19 +88,30 @@ impl ApiError {
         )
     }
 
-    /// The HTTP status of a library error code.
-    pub fn status_for_code(code: &str) -> StatusCode {
-        match code {
-            "limit.bytes" | "limit.vertices" | "limit.faces" => StatusCode::PAYLOAD_TOO_LARGE,
-            "mesh.format" => StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "mesh.parse"
-            | "mesh.external_reference"
-            | "mesh.empty"
-            | "mesh.non_finite"
-            | "spectrum.numerical" => StatusCode::UNPROCESSABLE_ENTITY,
-            "request.invalid" => StatusCode::BAD_REQUEST,
-            _ => StatusCode::INTERNAL_SERVER_ERROR,
-        }
+    /// The HTTP status and the public code of a library error; `None` for a server-side fault
+    /// (answered as 500 `server.internal`, details logged, not sent).
+    ///
+    /// One exhaustive `match` without a catch-all: a new [`crate::Error`] variant does not
+    /// compile until it is mapped here.
+    pub fn status_of(e: &crate::Error) -> Option<(StatusCode, &'static str)> {
+        use crate::error::LimitKind;
+        use crate::Error as E;
+        let status = match e {
+            E::Limit {
+                kind: LimitKind::Bytes | LimitKind::Vertices | LimitKind::Faces,
+                ..
+            } => StatusCode::PAYLOAD_TOO_LARGE,
+            E::UnknownFormat(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            E::Parse { .. }
+            | E::ExternalReference(_)
+            | E::EmptyMesh(_)
+            | E::NonFinite { .. }
+            | E::Numerical(_)
+            | E::TooFewEigenpairs { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+            E::InvalidArgument(_) => StatusCode::BAD_REQUEST,
+            E::Io(_) | E::Storage(_) | E::Corrupt { .. } => return None,
+        };
+        Some((status, e.code()))
     }
 
     fn title(&self) -> &'static str {
@@ -99,12 +121,10 @@ impl ApiError {
 
 impl From<crate::Error> for ApiError {
     fn from(e: crate::Error) -> Self {
-        let code = e.code();
-        let status = Self::status_for_code(code);
-        if status == StatusCode::INTERNAL_SERVER_ERROR {
-            return Self::internal(e);
+        match Self::status_of(&e) {
+            Some((status, code)) => Self::new(status, code, e.to_string()),
+            None => Self::internal(format_args!("[{}] {e}", e.code())),
         }
-        Self::new(status, code, e.to_string())
     }
 }
 

@@ -7,10 +7,10 @@ use super::metrics as m;
 use super::problem::ApiError;
 use crate::index::{Engine, Inserted, ScanIndex, ShapeRecord, Store};
 use crate::mesh::read::{detect_format, read_mesh, Format, ReadLimits};
-use crate::pipeline::analyze;
 use crate::rerank::{
     compute_payload, Candidate, Fusion, GwOptions, GwPayload, PayloadSpec, SgwStage,
 };
+use crate::spectrum::analyze;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -299,7 +299,7 @@ impl<E: Engine> App<E> {
         mesh: &crate::mesh::Mesh,
         t: &mut Timings,
         with_payload: bool,
-    ) -> Result<(crate::pipeline::Analysis, E::Signature, Option<GwPayload>), ApiError> {
+    ) -> Result<(crate::spectrum::Analysis, E::Signature, Option<GwPayload>), ApiError> {
         let analysis = analyze(mesh, &self.engine.analyze_options())?;
         t.prepare_ms = analysis.timings.prepare_ms;
         t.laplacian_ms = analysis.timings.laplacian_ms;

@@ -1,23 +1,21 @@
 //! Baselines that are not spectral distance distributions but sit behind the same ranking
 //! interface: the geodesic distance distribution (paper Table 2, "Geo") and Osada's D2.
-//! ShapeDNA (the eigenvalue vector) needs no code beyond [`crate::signature`].
+//! ShapeDNA (the eigenvalue vector) needs no code beyond [`super::compute`].
 //!
 //! * **Geodesic**: exact shortest paths on the *edge graph* (Dijkstra, Euclidean edge lengths)
 //!   from the farthest-point sources of the shared quadrature (weights: their Voronoi-cell
 //!   areas) to every vertex (weights `a_y`). Edge-graph paths are polylines along mesh edges, so
-//!   they *overestimate* the surface geodesic distance. Measured in the test
-//!   `baselines_on_the_sphere` (unit-area icosphere, 2 562 vertices, against the great-circle
-//!   distance): a mean relative excess of 6.7 % over the 10–90 % quantiles; the corpus window
-//!   on bench/mini is 3 % above REFERENCE.md's (which used the heat method). The bias is
-//!   systematic (similar on every shape of similar triangulation quality), so it moves every
-//!   histogram alike; it is not corrected.
+//!   they *overestimate* the surface geodesic distance; the bias is systematic (similar on every
+//!   shape of similar triangulation quality) and is not corrected (measured in
+//!   `docs/signature.md`, bounded by the test `baselines_on_the_sphere`).
 //! * **D2** (Osada et al. 2002): `samples` points uniform on the surface (triangle by area, then
 //!   uniform barycentric), all unordered pairs, Euclidean distances, equal weights. The random
 //!   generator is seeded with a hash of the mesh content, so a shape always gets the same
 //!   signature (a vertex permutation changes the seed: D2 is then equal only statistically).
 
+use super::distributions::{FineHistogram, QuantileSketch};
+use super::sampling::{EdgeGraph, Quadrature};
 use crate::mesh::{norm, sub, triangle_area, Mesh};
-use crate::signature::{EdgeGraph, FineHistogram, Quadrature, QuantileSketch};
 use rayon::prelude::*;
 use sha2::{Digest, Sha256};
 use std::collections::BinaryHeap;

@@ -1,11 +1,16 @@
 //! Tests of [`crate::signature`] (run in release mode: `cargo test --release --lib signature`).
 
+use super::distributions::FINE_BINS;
+use super::kernels::weighted_embedding;
+use super::sampling::Quadrature;
 use super::*;
 use crate::eigen::EigenOptions;
 use crate::mesh::generate;
 use crate::mesh::prepare::PrepareOptions;
-use crate::pipeline::{analyze, AnalyzeOptions};
+use crate::mesh::Mesh;
 use crate::ranking::{parzen_histogram, sketch_histogram, Histogram};
+use crate::spectrum::Analysis;
+use crate::spectrum::{analyze, AnalyzeOptions};
 
 fn analysis_of(mesh: &Mesh, k: usize, normalize_area: bool) -> Analysis {
     let opts = AnalyzeOptions {

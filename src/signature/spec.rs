@@ -1,0 +1,460 @@
+//! What to compute for a shape: channels (kernel × norm × scale, scale aggregates, baselines),
+//! the pair quadrature and the sketch resolution, with their validation and stable names/keys.
+
+use crate::scale::SpectrumScaling;
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+/// The default diffusion times for unit-area shapes, `t_j = 0.016 · 2.5^j`, j = 0..5.
+pub const DEFAULT_HEAT_SCALES: [f64; 6] = [0.016, 0.04, 0.1, 0.25, 0.625, 1.5625];
+
+/// The three smallest default scales (`t ≤ 0.1`).
+pub const SMALL_HEAT_SCALES: [f64; 3] = [0.016, 0.04, 0.1];
+
+/// Scale aggregation functional (§3.2): single scale, sum, sum of squares, maximum.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Aggregation {
+    /// The first (only) member.
+    Single,
+    /// `Σ_t f_t`.
+    Sum,
+    /// `Σ_t f_t²`.
+    Sum2,
+    /// `max_t f_t`.
+    Max,
+}
+
+impl Aggregation {
+    /// Short name used in channel and configuration names.
+    pub fn label(&self) -> &'static str {
+        match self {
+            Aggregation::Single => "Single",
+            Aggregation::Sum => "Sum",
+            Aggregation::Sum2 => "Sum2",
+            Aggregation::Max => "Max",
+        }
+    }
+
+    /// Applies the functional to `values` in order (empty → 0).
+    pub fn apply(&self, values: impl IntoIterator<Item = f64>) -> f64 {
+        let mut it = values.into_iter();
+        match self {
+            Aggregation::Single => it.next().unwrap_or(0.0),
+            Aggregation::Sum => it.sum(),
+            Aggregation::Sum2 => it.map(|v| v * v).sum(),
+            Aggregation::Max => it.fold(f64::NEG_INFINITY, f64::max).max(0.0),
+        }
+    }
+}
+
+/// Transfer function K(λ) of the diffusion kernel (eq. 5).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case")]
+pub enum Kernel {
+    /// Heat kernel `K(λ) = e^{-tλ}` (§2.2).
+    Heat {
+        /// Diffusion time (unit-area shapes: see [`DEFAULT_HEAT_SCALES`]).
+        t: f64,
+    },
+    /// Commute-time kernel `K(λ) = λ^{-1/2}` (eq. 19).
+    CommuteTime,
+    /// Band-limiting step `K(λ) = 1[λ < λ_c]`.
+    Step {
+        /// Cut-off eigenvalue.
+        lambda_c: f64,
+    },
+    /// Kernel-stage aggregation of heat kernels (§3.2): `K(λ) = A_t e^{-tλ}`; for
+    /// [`Aggregation::Sum2`], `K(λ) = (Σ_t e^{-2tλ})^{1/2}`, so that the L2 distance is
+    /// `(Σ_t d_t²)^{1/2}`.
+    HeatAggregate {
+        /// Diffusion times.
+        ts: Vec<f64>,
+        /// Functional applied to the transfer functions.
+        aggregation: Aggregation,
+    },
+}
+
+/// Norm of `k(x,·) − k(y,·)` defining the diffusion distance (§3).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Norm {
+    /// `L²(X)`: closed form from the eigenmap (eq. 9).
+    L2,
+    /// `L¹(X)`: kernel rows on area-weighted quadrature points.
+    L1,
+    /// `L^∞(X)`: kernel rows on quadrature points.
+    LInf,
+}
+
+impl Norm {
+    fn label(&self) -> &'static str {
+        match self {
+            Norm::L2 => "l2",
+            Norm::L1 => "l1",
+            Norm::LInf => "linf",
+        }
+    }
+}
+
+/// What one channel of a signature measures.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case")]
+pub enum ChannelKind {
+    /// Distribution of the spectral distance of `kernel` under `norm` (eq. 10).
+    Spectral {
+        /// Transfer function.
+        kernel: Kernel,
+        /// Norm.
+        norm: Norm,
+    },
+    /// Distance-stage aggregation (§3.2): distribution of `A_t d_t(x, y)` over pairs, `d_t` the
+    /// heat distance at time `t` under `norm`.
+    DistanceAggregate {
+        /// Diffusion times.
+        ts: Vec<f64>,
+        /// Norm of each `d_t`.
+        norm: Norm,
+        /// Functional applied per pair.
+        aggregation: Aggregation,
+    },
+    /// Distribution-stage aggregation (§3.2): the measure `Σ_t F_t` (mass `|ts| · area²`).
+    DistributionSum {
+        /// Diffusion times.
+        ts: Vec<f64>,
+        /// Norm of each `d_t`.
+        norm: Norm,
+    },
+    /// Baseline: distribution of geodesic distances (edge-graph Dijkstra), optionally only the
+    /// pairs closer than `radius`.
+    Geodesic {
+        /// Pairs farther apart are left out (unit-area units).
+        radius: Option<f64>,
+    },
+    /// Baseline: Osada's D2, Euclidean distances between `samples` area-uniform surface points.
+    EuclideanD2 {
+        /// Number of surface points (all pairs are used).
+        samples: usize,
+    },
+    /// Baseline: ShapeDNA, the first `count` non-zero eigenvalues (a vector, not a distribution).
+    ShapeDna {
+        /// Number of eigenvalues.
+        count: usize,
+    },
+    /// Truncated distance range of another distribution channel: only its pairs closer than
+    /// `radius` (unit-area units; mass beyond is left out). Calibrated and histogrammed as a
+    /// channel of its own, so it gets its own window on the short range.
+    Truncated {
+        /// The distribution channel (not ShapeDNA, not truncated).
+        channel: Box<ChannelKind>,
+        /// Pairs farther apart are left out.
+        radius: f64,
+    },
+}
+
+/// One channel of a [`SignatureSpec`].
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ChannelSpec {
+    /// What the channel measures.
+    pub kind: ChannelKind,
+}
+
+fn fmt_ts(ts: &[f64]) -> String {
+    ts.iter()
+        .map(|t| format!("{t}"))
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+fn fmt_lambda_c(lc: f64) -> String {
+    let m = lc / (4.0 * std::f64::consts::PI);
+    if (m - m.round()).abs() < 1e-9 * m.abs().max(1.0) {
+        format!("4pi*{}", m.round())
+    } else {
+        format!("{lc}")
+    }
+}
+
+impl ChannelSpec {
+    /// Heat kernel at time `t` under `norm`.
+    pub fn heat(t: f64, norm: Norm) -> Self {
+        Self {
+            kind: ChannelKind::Spectral {
+                kernel: Kernel::Heat { t },
+                norm,
+            },
+        }
+    }
+
+    /// Commute-time kernel under the L2 norm (eq. 19).
+    pub fn commute_time() -> Self {
+        Self {
+            kind: ChannelKind::Spectral {
+                kernel: Kernel::CommuteTime,
+                norm: Norm::L2,
+            },
+        }
+    }
+
+    /// Step kernel `1[λ < λ_c]` under the L2 norm.
+    pub fn step(lambda_c: f64) -> Self {
+        Self {
+            kind: ChannelKind::Spectral {
+                kernel: Kernel::Step { lambda_c },
+                norm: Norm::L2,
+            },
+        }
+    }
+
+    /// The pairs of `channel` closer than `radius` ([`ChannelKind::Truncated`]).
+    pub fn truncated(channel: ChannelSpec, radius: f64) -> Self {
+        Self {
+            kind: ChannelKind::Truncated {
+                channel: Box::new(channel.kind),
+                radius,
+            },
+        }
+    }
+
+    /// Geodesic distance distribution.
+    pub fn geodesic(radius: Option<f64>) -> Self {
+        Self {
+            kind: ChannelKind::Geodesic { radius },
+        }
+    }
+
+    /// Osada D2 with `samples` points.
+    pub fn d2(samples: usize) -> Self {
+        Self {
+            kind: ChannelKind::EuclideanD2 { samples },
+        }
+    }
+
+    /// ShapeDNA with `count` eigenvalues.
+    pub fn shape_dna(count: usize) -> Self {
+        Self {
+            kind: ChannelKind::ShapeDna { count },
+        }
+    }
+
+    /// Stable, human-readable name, e.g. `heat-l2[t=0.016]`, `ct-l2`, `step-l2[lc=4pi*10]`,
+    /// `heat-l2-ksum[t=0.016,0.04]`, `heat-l2-dmax[...]`, `heat-l2-fsum[...]`, `geo`,
+    /// `geo[r=0.5]`, `d2[n=2000]`, `shapedna[50]`, `heat-l2[t=0.016][r=2.44]` (truncated).
+    pub fn name(&self) -> String {
+        match &self.kind {
+            ChannelKind::Spectral { kernel, norm } => {
+                let n = norm.label();
+                match kernel {
+                    Kernel::Heat { t } => format!("heat-{n}[t={t}]"),
+                    Kernel::CommuteTime => format!("ct-{n}"),
+                    Kernel::Step { lambda_c } => {
+                        format!("step-{n}[lc={}]", fmt_lambda_c(*lambda_c))
+                    }
+                    Kernel::HeatAggregate { ts, aggregation } => format!(
+                        "heat-{n}-k{}[t={}]",
+                        aggregation.label().to_lowercase(),
+                        fmt_ts(ts)
+                    ),
+                }
+            }
+            ChannelKind::DistanceAggregate {
+                ts,
+                norm,
+                aggregation,
+            } => format!(
+                "heat-{}-d{}[t={}]",
+                norm.label(),
+                aggregation.label().to_lowercase(),
+                fmt_ts(ts)
+            ),
+            ChannelKind::DistributionSum { ts, norm } => {
+                format!("heat-{}-fsum[t={}]", norm.label(), fmt_ts(ts))
+            }
+            ChannelKind::Geodesic { radius } => match radius {
+                Some(r) => format!("geo[r={r}]"),
+                None => "geo".to_string(),
+            },
+            ChannelKind::EuclideanD2 { samples } => format!("d2[n={samples}]"),
+            ChannelKind::ShapeDna { count } => format!("shapedna[{count}]"),
+            ChannelKind::Truncated { channel, radius } => {
+                let inner = ChannelSpec {
+                    kind: (**channel).clone(),
+                };
+                format!("{}[r={radius}]", inner.name())
+            }
+        }
+    }
+
+    /// The channel whose distances are computed (the inner channel of a truncated one).
+    pub(crate) fn base_kind(&self) -> &ChannelKind {
+        match &self.kind {
+            ChannelKind::Truncated { channel, .. } => channel,
+            k => k,
+        }
+    }
+}
+
+/// Which point pairs discretise `μ × μ` in eq. 10.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case")]
+pub enum PairQuadrature {
+    /// Every ordered vertex pair (x, y), weight `a_x a_y`: exact, O(n² k).
+    AllVertices,
+    /// Farthest-point samples (edge-graph geodesic FPS), each carrying the area of its Voronoi
+    /// cell (nearest-sample assignment of vertices, weights `a_i`).
+    Farthest {
+        /// Number of samples for L2 channels (clamped to n).
+        samples: usize,
+        /// Represent each sample by the area-weighted mean eigenmap row of its Voronoi cell
+        /// instead of the sample vertex's own row.
+        #[serde(default)]
+        cell_means: bool,
+        /// Evaluate same-cell and adjacent-cell pairs one-sided exactly (sample to every vertex
+        /// of the other cell) instead of sample to sample (ignored with `cell_means`).
+        #[serde(default = "yes")]
+        near_field: bool,
+    },
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// What to compute for a shape: the channels and the discretisation.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct SignatureSpec {
+    /// Channels, in order.
+    pub channels: Vec<ChannelSpec>,
+    /// Pair quadrature of the L2 spectral channels.
+    pub quadrature: PairQuadrature,
+    /// Quadrature points (pairs and integration nodes) of L1 / L∞ channels (O(m³) per channel).
+    pub lp_samples: usize,
+    /// Geodesic sources (farthest-point samples with Voronoi weights; targets are all vertices).
+    pub geodesic_sources: usize,
+    /// Number of quantile intervals stored per distribution channel.
+    pub sketch_quantiles: usize,
+    /// Per-shape rescaling of the spectrum before kernels are evaluated
+    /// ([`crate::scale`]); omitted from the JSON (and key) when `None`.
+    #[serde(default, skip_serializing_if = "SpectrumScaling::is_none")]
+    pub spectrum_scaling: SpectrumScaling,
+}
+
+impl Default for SignatureSpec {
+    fn default() -> Self {
+        Self {
+            channels: Vec::new(),
+            quadrature: PairQuadrature::Farthest {
+                samples: 1000,
+                cell_means: false,
+                near_field: true,
+            },
+            lp_samples: 500,
+            geodesic_sources: 200,
+            sketch_quantiles: 1024,
+            spectrum_scaling: SpectrumScaling::None,
+        }
+    }
+}
+
+impl SignatureSpec {
+    /// A spec with `channels` and the default discretisation.
+    pub fn with_channels(channels: Vec<ChannelSpec>) -> Self {
+        Self {
+            channels,
+            ..Self::default()
+        }
+    }
+
+    /// Stable key (hex SHA-256 prefix of the canonical JSON of the spec) for caches.
+    pub fn key(&self) -> String {
+        let json = serde_json::to_string(self).unwrap_or_default();
+        let digest = Sha256::digest(json.as_bytes());
+        hex::encode(&digest[..12])
+    }
+
+    /// Channel names, in order.
+    pub fn channel_names(&self) -> Vec<String> {
+        self.channels.iter().map(|c| c.name()).collect()
+    }
+
+    /// The union of several specs (channels deduplicated by name, first occurrence first). The
+    /// discretisation of `self` is kept.
+    pub fn union(&self, others: &[&SignatureSpec]) -> SignatureSpec {
+        let mut out = self.clone();
+        let mut names = out.channel_names();
+        for o in others {
+            for c in &o.channels {
+                let n = c.name();
+                if !names.contains(&n) {
+                    names.push(n);
+                    out.channels.push(c.clone());
+                }
+            }
+        }
+        out
+    }
+}
+
+pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
+    let bad = |m: String| Err(Error::InvalidArgument(m));
+    if spec.sketch_quantiles == 0 || spec.sketch_quantiles > 1 << 20 {
+        return bad(format!(
+            "sketch_quantiles must be in 1..=2^20, got {}",
+            spec.sketch_quantiles
+        ));
+    }
+    if let PairQuadrature::Farthest { samples: 0, .. } = spec.quadrature {
+        return bad("quadrature samples must be ≥ 1".into());
+    }
+    if spec.lp_samples == 0 || spec.geodesic_sources == 0 {
+        return bad("lp_samples and geodesic_sources must be ≥ 1".into());
+    }
+    let check_t = |t: f64| t.is_finite() && t > 0.0;
+    match spec.spectrum_scaling {
+        SpectrumScaling::Lambda1 { reference } if !check_t(reference) => {
+            return bad(format!(
+                "spectrum_scaling: reference must be finite and > 0, got {reference}"
+            ));
+        }
+        SpectrumScaling::WeylFit {
+            eigenpairs: Some(m),
+        } if m < 2 => {
+            return bad(format!("spectrum_scaling: eigenpairs must be ≥ 2, got {m}"));
+        }
+        _ => {}
+    }
+    for c in &spec.channels {
+        if let ChannelKind::Truncated { channel, radius } = &c.kind {
+            if !(radius.is_finite() && *radius > 0.0)
+                || matches!(
+                    **channel,
+                    ChannelKind::Truncated { .. } | ChannelKind::ShapeDna { .. }
+                )
+            {
+                return bad(format!("invalid channel {}", c.name()));
+            }
+        }
+        let ok = match c.base_kind() {
+            ChannelKind::Spectral { kernel, .. } => match kernel {
+                Kernel::Heat { t } => check_t(*t),
+                Kernel::CommuteTime => true,
+                Kernel::Step { lambda_c } => lambda_c.is_finite() && *lambda_c > 0.0,
+                Kernel::HeatAggregate { ts, .. } => {
+                    !ts.is_empty() && ts.iter().all(|&t| check_t(t))
+                }
+            },
+            ChannelKind::DistanceAggregate { ts, .. } | ChannelKind::DistributionSum { ts, .. } => {
+                !ts.is_empty() && ts.iter().all(|&t| check_t(t))
+            }
+            ChannelKind::Geodesic { radius } => radius.is_none_or(|r| r.is_finite() && r > 0.0),
+            ChannelKind::EuclideanD2 { samples } => *samples >= 2 && *samples <= 100_000,
+            ChannelKind::ShapeDna { count } => *count >= 1,
+            ChannelKind::Truncated { .. } => false,
+        };
+        if !ok {
+            return bad(format!("invalid channel {}", c.name()));
+        }
+    }
+    Ok(())
+}
