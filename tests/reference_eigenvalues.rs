@@ -1,21 +1,24 @@
-//! The first 50 eigenvalues of every mesh listed in `../shared/bench/mini/reference_eigenvalues.json`
-//! (dense LAPACK, the same cotangent/lumped-mass/unit-area conventions as ours, stated in the file)
-//! agree to 1e-6 relative, and λ0 to 1e-9 absolute.
+//! The first 50 eigenvalues of every mesh listed in the benchmark's
+//! `mini/reference_eigenvalues.json` (dense LAPACK, the same cotangent/lumped-mass/unit-area
+//! conventions as ours, stated in the file) agree to 1e-6 relative, and λ0 to 1e-9 absolute. The
+//! benchmark folder is found by [`common::bench_dir`] (`SHAPESEEK_BENCH_DIR`, or `shared/bench`
+//! beside the clone or one of its ancestors).
+
+mod common;
 
 use shapeseek::eigen::EigenOptions;
 use shapeseek::mesh::{read_path, ReadLimits};
-use shapeseek::pipeline::{analyze, AnalyzeOptions};
-use std::path::Path;
+use shapeseek::spectrum::{analyze, AnalyzeOptions};
 
 #[test]
 fn mini_benchmark_reference_eigenvalues() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/bench/mini");
+    let Some(dir) = common::bench_dir("mini") else {
+        println!("SKIPPED: benchmark folder shared/bench/mini not found (set SHAPESEEK_BENCH_DIR)");
+        return;
+    };
     let file = dir.join("reference_eigenvalues.json");
     if !file.exists() {
-        println!(
-            "SKIPPED: {} not found (the shared benchmark data is not beside this clone)",
-            file.display()
-        );
+        println!("SKIPPED: {} not found", file.display());
         return;
     }
     let text = std::fs::read_to_string(&file).unwrap();

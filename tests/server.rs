@@ -583,14 +583,14 @@ fn ranking_equals_library_ranking() {
     let cfg = default_config();
 
     // The eval path: signatures computed here from the same bytes with the same options.
-    let mut opts = shapeseek::pipeline::AnalyzeOptions::default();
+    let mut opts = shapeseek::spectrum::AnalyzeOptions::default();
     opts.eigen.k = K;
     let sigs: Vec<Signature> = shapes
         .iter()
         .map(|(.., bytes)| {
             let mesh = shapeseek::mesh::read::read_mesh(bytes, None, &Default::default()).unwrap();
             compute_signature(
-                &shapeseek::pipeline::analyze(&mesh, &opts).unwrap(),
+                &shapeseek::spectrum::analyze(&mesh, &opts).unwrap(),
                 &cfg.signature,
             )
             .unwrap()
@@ -709,13 +709,13 @@ fn spectral_gw_stage_equals_library_scores() {
     let s = Server::start(dir.path(), |_| {});
     let a = s.addr;
     let shapes = ingest_corpus(a);
-    let mut opts = shapeseek::pipeline::AnalyzeOptions::default();
+    let mut opts = shapeseek::spectrum::AnalyzeOptions::default();
     opts.eigen.k = K;
     let payloads: Vec<GwPayload> = shapes
         .iter()
         .map(|(.., bytes)| {
             let mesh = shapeseek::mesh::read::read_mesh(bytes, None, &Default::default()).unwrap();
-            let analysis = shapeseek::pipeline::analyze(&mesh, &opts).unwrap();
+            let analysis = shapeseek::spectrum::analyze(&mesh, &opts).unwrap();
             compute_payload(&analysis, &PayloadSpec::default()).unwrap()
         })
         .collect();

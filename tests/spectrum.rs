@@ -2,31 +2,15 @@
 //! multiplicity 2l+1), a flat rectangle (Neumann spectrum), invariance to rigid motion and vertex
 //! order, A-orthonormality, residuals, determinism, and dense/Krylov agreement.
 
+mod common;
+
+use common::{analyze_opts as opts, unit_area_sphere_eigenvalue as sphere_exact};
 use shapeseek::eigen::{EigenOptions, Method};
 use shapeseek::mesh::generate;
 use shapeseek::mesh::prepare::PrepareOptions;
 use shapeseek::mesh::Mesh;
-use shapeseek::pipeline::{analyze, AnalyzeOptions};
-use shapeseek::spectrum::compute_spectrum;
+use shapeseek::spectrum::{analyze, compute_spectrum, AnalyzeOptions};
 use std::f64::consts::PI;
-
-fn opts(k: usize, method: Method) -> AnalyzeOptions {
-    AnalyzeOptions {
-        prepare: PrepareOptions::default(),
-        eigen: EigenOptions {
-            k,
-            method,
-            ..Default::default()
-        },
-        ..Default::default()
-    }
-}
-
-/// Unit-area sphere: radius r = 1/√(4π), so λ = l(l+1)/r² = 4π·l(l+1).
-fn sphere_exact(i: usize) -> f64 {
-    let l = (i as f64).sqrt().floor();
-    4.0 * PI * l * (l + 1.0)
-}
 
 #[test]
 fn icosphere_spectrum_converges_to_l_l_plus_1_with_multiplicity() {
