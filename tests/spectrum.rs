@@ -7,9 +7,8 @@ mod common;
 use common::{analyze_opts as opts, unit_area_sphere_eigenvalue as sphere_exact};
 use shapeseek::eigen::{EigenOptions, Method};
 use shapeseek::mesh::generate;
-use shapeseek::mesh::prepare::PrepareOptions;
 use shapeseek::mesh::Mesh;
-use shapeseek::spectrum::{analyze, compute_spectrum, AnalyzeOptions};
+use shapeseek::spectrum::{analyze, compute_spectrum};
 use std::f64::consts::PI;
 
 #[test]

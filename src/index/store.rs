@@ -102,7 +102,7 @@ pub fn storage_err(e: impl std::fmt::Display) -> Error {
 fn corrupt_record(id: &[u8], e: impl std::fmt::Display) -> Error {
     Error::corrupt(
         "shape record",
-        Some(&String::from_utf8_lossy(id)),
+        Some(String::from_utf8_lossy(id).as_ref()),
         e.to_string(),
     )
 }
@@ -433,7 +433,7 @@ impl Store {
                 .get(&k)
                 .map_err(storage_err)?
                 .ok_or_else(|| {
-                    Error::corrupt("index", Some(&rec.id), "the shape has no signature")
+                    Error::corrupt("index", Some(rec.id.as_str()), "the shape has no signature")
                 })?;
             out.push((rec, sig.to_vec()));
         }

@@ -164,3 +164,64 @@ pub fn code_for_status(status: StatusCode) -> &'static str {
         _ => "request.invalid",
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::error::LimitKind;
+    use crate::Error;
+
+    /// The public status and code of every library error kind (the codes are a contract).
+    #[test]
+    fn every_error_kind_has_its_status_and_code() {
+        let limit = |kind| Error::Limit {
+            kind,
+            limit: 1,
+            actual: 2,
+        };
+        let cases: Vec<(Error, u16, &str)> = vec![
+            (Error::parse("OBJ", None, "x"), 422, "mesh.parse"),
+            (Error::UnknownFormat("x".into()), 415, "mesh.format"),
+            (
+                Error::ExternalReference("x".into()),
+                422,
+                "mesh.external_reference",
+            ),
+            (limit(LimitKind::Bytes), 413, "limit.bytes"),
+            (limit(LimitKind::Vertices), 413, "limit.vertices"),
+            (limit(LimitKind::Faces), 413, "limit.faces"),
+            (Error::EmptyMesh("x".into()), 422, "mesh.empty"),
+            (Error::NonFinite { vertex: 0 }, 422, "mesh.non_finite"),
+            (Error::Numerical("x".into()), 422, "spectrum.numerical"),
+            (
+                Error::TooFewEigenpairs {
+                    asked: 100,
+                    found: 3,
+                },
+                422,
+                "spectrum.too_few_eigenpairs",
+            ),
+            (Error::InvalidArgument("x".into()), 400, "request.invalid"),
+            (
+                Error::Io(std::io::Error::other("x")),
+                500,
+                "server.internal",
+            ),
+            (Error::Storage("x".into()), 500, "server.internal"),
+            (
+                Error::corrupt("signature", Some("0001"), "x"),
+                500,
+                "server.internal",
+            ),
+        ];
+        for (e, status, code) in cases {
+            let lib = e.code();
+            let a = ApiError::from(e);
+            assert_eq!(
+                (a.status.as_u16(), a.code.as_str()),
+                (status, code),
+                "{lib}"
+            );
+        }
+    }
+}
