@@ -190,7 +190,10 @@ fn bad_input_is_an_error_not_a_panic() {
     // Sizes that do not match.
     assert_eq!(code(&l, &ok[..n - 1], &opts), "request.invalid");
     // An empty operator.
-    assert_eq!(code(&symmetric(0, &[]), &[], &opts), "request.invalid");
+    assert_eq!(
+        code(&symmetric(0, &[]), &[0.0f64; 0][..], &opts),
+        "request.invalid"
+    );
     // Zero, negative and non-finite masses.
     for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
         let mut m = ok.clone();
