@@ -62,7 +62,7 @@ pub enum SpectrumScaling {
     },
 }
 
-/// The band of the product default's Weyl fit ([`crate::ranking::default_config`]): the first
+/// The band of the product default's Weyl fit ([`crate::presets::default_config`]): the first
 /// 100 eigenpairs, i.e. the spectrum the scale rule was evaluated with on bench/dev (k = 100).
 pub const WEYL_FIT_EIGENPAIRS: usize = 100;
 
@@ -187,7 +187,7 @@ mod print_configs {
     fn print_default_config_json() {
         println!(
             "{}",
-            serde_json::to_string(&crate::ranking::default_config()).unwrap()
+            serde_json::to_string(&crate::presets::default_config()).unwrap()
         );
     }
 }
