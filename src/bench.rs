@@ -13,6 +13,7 @@ use shapeseek::eigen::{smallest_eigenpairs, EigenOptions};
 use shapeseek::laplace::{cotangent_laplacian, write_matrix_market};
 use shapeseek::mesh::generate;
 use shapeseek::mesh::prepare::{prepare, PrepareOptions};
+use shapeseek::search::{Encoded, Layout};
 use shapeseek::signature::{Signature, SignatureSpec};
 use shapeseek::{Error, Result};
 use std::io::Write;
@@ -32,7 +33,8 @@ enum BenchWhat {
     Spectrum(SpectrumBench),
     /// Signature computation from a computed spectrum (six-scale heat L2 and other channels).
     Signature(SignatureBench),
-    /// First-stage search latency over N stored signatures (the server's scan, without HTTP),
+    /// First-stage search latency and resident memory per shape over N stored shapes (the
+    /// server's scan index, without HTTP),
     /// with the full ranking measured in the same run as the reference.
     Search(SearchBench),
     /// Writes N synthetic shapes into a server data directory (for HTTP load tests).
@@ -64,6 +66,15 @@ struct SearchBench {
     /// for the bounds). Default: stored shapes, themselves left out.
     #[arg(long)]
     query_scale: Option<f64>,
+    /// Distinct synthetic signatures encoded from their sketches (a multiple of 24 is used);
+    /// larger indexes repeat these rows, each copy with a few counts moved by one unit to a
+    /// neighbouring bin (deterministic), since encoding a sketch costs about a millisecond.
+    #[arg(long, default_value_t = 100_000)]
+    distinct: usize,
+    /// Queries whose pruned top-k is compared with the full ranking (every candidate scored);
+    /// default: every query up to 100 000 stored shapes, else 3.
+    #[arg(long)]
+    verify: Option<usize>,
 }
 
 #[derive(Args)]
@@ -541,22 +552,57 @@ fn scaled(sig: &Signature, f: f64) -> Signature {
     sig
 }
 
+/// Resident set size of this process (VmRSS), in bytes.
+fn rss_bytes() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmRSS:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|v| v.parse::<f64>().ok())
+            })
+        })
+        .map(|kib| kib * 1024.0)
+        .unwrap_or(f64::NAN)
+}
+
+/// Copy `c ≥ 1` of an encoded row: up to four counts moved by one unit to the next bin of
+/// the same channel (positions from `i`), group sums recomputed.
+fn perturbed(e: &Encoded, layout: &Layout, i: usize) -> Encoded {
+    let mut e = e.clone();
+    let bins = layout.bins;
+    for k in 0..layout.histograms() {
+        for r in 0..4u64 {
+            let j = (unit(i as u64 * 131 + k as u64 * 17 + r) * (bins - 1) as f64) as usize;
+            let at = k * bins + j;
+            if e.hist[at] > 0 && e.hist[at + 1] < u16::MAX {
+                e.hist[at] -= 1;
+                e.hist[at + 1] += 1;
+            }
+        }
+    }
+    e.fill_groups(layout);
+    e
+}
+
 fn run_search(b: &SearchBench) -> Result<()> {
-    use shapeseek::ranking::{calibrate, default_config, prepare_for_ranking, rank};
-    use shapeseek::topk::BoundTable;
+    use shapeseek::index::ScanIndex;
+    use shapeseek::presets::default_config;
+    use shapeseek::ranking::calibrate;
+    use shapeseek::search::{rank_all, top_k, Query};
+    use std::sync::Arc;
     let mut cfg = default_config();
     if let Some(d) = &b.dissimilarity {
         cfg.query.dissimilarity = serde_json::from_value(serde_json::Value::String(d.clone()))
             .map_err(|e| Error::InvalidArgument(format!("--dissimilarity {d}: {e}")))?;
     }
-    let max = b.sizes.iter().copied().max().unwrap_or(0);
     let bases = synthetic_bases(&cfg.signature, false)?;
-    let sigs: Vec<Signature> = (0..max)
-        .map(|i| synthetic_signature(&bases, i, b.spread))
-        .collect();
     println!(
         "config `{}` ({:?}), top {}, {} queries per size, rayon threads {}; reference = the \
-         full ranking (every candidate scored, sorted) on the same queries",
+         full ranking (every candidate scored, sorted) on the verified queries; memory = \
+         resident set growth while the index (corpus + ids, names, tags) was built, and the \
+         index's own heap bytes, per shape",
         cfg.name,
         cfg.query.dissimilarity,
         b.top_k,
@@ -564,58 +610,112 @@ fn run_search(b: &SearchBench) -> Result<()> {
         rayon::current_num_threads()
     );
     println!(
-        "{:>10} {:>9} {:>9} {:>9} {:>12} {:>10} {:>9}",
-        "stored", "p50 ms", "p99 ms", "max ms", "scored (mean)", "full p50", "speed-up"
+        "{:>10} {:>9} {:>9} {:>9} {:>12} {:>10} {:>9} {:>9} {:>11} {:>11}",
+        "stored",
+        "p50 ms",
+        "p99 ms",
+        "max ms",
+        "scored (mean)",
+        "full p50",
+        "speed-up",
+        "verified",
+        "RSS B/shape",
+        "heap B/shape"
     );
     for &n in &b.sizes {
-        let cal = calibrate(&sigs[..n].iter().collect::<Vec<_>>(), &cfg.signature, 1);
-        let prepared: Vec<_> = sigs[..n]
-            .par_iter()
-            .map(|s| prepare_for_ranking(s, &cal))
+        let distinct = b.distinct.max(SYNTHETIC_BASES) / SYNTHETIC_BASES * SYNTHETIC_BASES;
+        let d = distinct.min(n);
+        // Calibration on (up to) the distinct signatures, then dropped: the index keeps none.
+        let sigs: Vec<Signature> = (0..d)
+            .into_par_iter()
+            .map(|i| synthetic_signature(&bases, i, b.spread))
             .collect();
-        let table = BoundTable::build(&prepared);
+        let cal = Arc::new(calibrate(
+            &sigs.iter().collect::<Vec<_>>(),
+            &cfg.signature,
+            1,
+        ));
+        let layout = Layout::of(&cal);
+        let rows: Vec<Encoded> = sigs
+            .par_iter()
+            .map(|s| Encoded::from_signature(s, &cal, &layout))
+            .collect();
+        drop(sigs);
+        let rss0 = rss_bytes();
+        let mut index = ScanIndex::with_capacity(cal.clone(), n, n);
+        let tags = |i: usize| {
+            vec![
+                "synthetic".to_string(),
+                format!("base{}", i % SYNTHETIC_BASES),
+            ]
+        };
+        for i in 0..n {
+            let id = format!("{i:016x}");
+            let name = format!("synthetic-{i:07}");
+            if i < d {
+                index.push_encoded(&id, &name, &tags(i), &rows[i]);
+            } else {
+                index.push_encoded(&id, &name, &tags(i), &perturbed(&rows[i % d], &layout, i));
+            }
+        }
+        let rss = (rss_bytes() - rss0) / n as f64;
+        let heap = index.heap_bytes() as f64 / n as f64;
+        let corpus = index.corpus();
+        let q = Query::new(&cfg.query, corpus.layout());
         let queries: Vec<usize> = (0..b.queries.max(1))
             .map(|q| (unit(1_000_000 + q as u64) * n as f64) as usize % n)
             .collect();
+        let verify = b
+            .verify
+            .unwrap_or(if n <= 100_000 { queries.len() } else { 3 });
         let (mut times, mut full, mut scored) = (Vec::new(), Vec::new(), 0usize);
-        for &q in &queries {
-            let outside = b
-                .query_scale
-                .map(|f| prepare_for_ranking(&scaled(&bases[q % bases.len()].0, f), &cal));
+        for (qi, &qpos) in queries.iter().enumerate() {
+            let outside = b.query_scale.map(|f| {
+                Encoded::from_signature(&scaled(&bases[qpos % bases.len()].0, f), &cal, &layout)
+            });
             let (query, skip) = match &outside {
-                Some(p) => (p, usize::MAX),
-                None => (&prepared[q], q),
+                Some(p) => (p.clone(), usize::MAX),
+                None => (corpus.encoded(qpos), qpos),
             };
             let t = Instant::now();
-            let (hits, count) =
-                table.top_k_counted(query, &prepared, &cfg.query, b.top_k, &|i| i != skip);
+            let (hits, count) = top_k(corpus, &q, query.view(), b.top_k, &|i| i != skip);
             times.push(t.elapsed().as_secs_f64() * 1e3);
             scored += count;
-            let t = Instant::now();
-            let all = rank(query, &prepared, &cfg.query);
-            full.push(t.elapsed().as_secs_f64() * 1e3);
-            let head: Vec<(usize, f64)> = all
-                .into_iter()
-                .filter(|&(i, _)| i != skip)
-                .take(b.top_k)
-                .collect();
-            if head != hits {
-                return Err(Error::InvalidArgument(format!(
-                    "pruned top-k differs from the full ranking for query {q}"
-                )));
+            if qi < verify {
+                let t = Instant::now();
+                let all = rank_all(corpus, &q, query.view());
+                full.push(t.elapsed().as_secs_f64() * 1e3);
+                let head: Vec<(usize, f64)> = all
+                    .into_iter()
+                    .filter(|&(i, _)| i != skip)
+                    .take(b.top_k)
+                    .collect();
+                if head != hits {
+                    return Err(Error::InvalidArgument(format!(
+                        "pruned top-k differs from the full ranking for query {qpos}"
+                    )));
+                }
             }
         }
         times.sort_by(f64::total_cmp);
         full.sort_by(f64::total_cmp);
         let pct = |v: &[f64], p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+        let full50 = if full.is_empty() {
+            f64::NAN
+        } else {
+            pct(&full, 0.5)
+        };
         println!(
-            "{n:>10} {:>9.2} {:>9.2} {:>9.2} {:>12.0} {:>10.2} {:>8.1}x",
+            "{n:>10} {:>9.2} {:>9.2} {:>9.2} {:>12.0} {:>10.2} {:>8.1}x {:>9} {:>11.0} {:>11.0}",
             pct(&times, 0.5),
             pct(&times, 0.99),
             times[times.len() - 1],
             scored as f64 / queries.len() as f64,
-            pct(&full, 0.5),
-            pct(&full, 0.5) / pct(&times, 0.5)
+            full50,
+            full50 / pct(&times, 0.5),
+            full.len(),
+            rss,
+            heap
         );
     }
     Ok(())
@@ -624,9 +724,9 @@ fn run_search(b: &SearchBench) -> Result<()> {
 fn run_populate(b: &PopulateBench) -> Result<()> {
     use sha2::{Digest, Sha256};
     use shapeseek::index::store::{now_unix_ms, BatchItem, ShapeRecord, Store};
-    use shapeseek::index::{Engine, FwEngine};
+    use shapeseek::index::Engine;
     use shapeseek::mesh::write::write_obj;
-    let engine = FwEngine::new();
+    let engine = Engine::new();
     let store = Store::open(&b.data)?;
     let t0 = Instant::now();
     let bases = synthetic_bases(&engine.config.signature, b.payloads)?;

@@ -12,12 +12,13 @@ pub mod eval;
 pub mod index;
 pub mod laplace;
 pub mod mesh;
+pub mod presets;
 pub mod ranking;
 pub mod rerank;
 pub mod scale;
+pub mod search;
 pub mod server;
 pub mod signature;
 pub mod spectrum;
-pub mod topk;
 
 pub use error::{Error, Result};

@@ -12,6 +12,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 mod bench;
+mod cli;
 
 #[derive(Parser)]
 #[command(
@@ -33,7 +34,7 @@ enum Command {
     /// Upgrade an index directory to this build's schema version (after a backup copy).
     Migrate(shapeseek::server::MigrateArgs),
     /// Evaluate retrieval on a benchmark manifest (mAP per transformation, ROC, PR).
-    Eval(shapeseek::eval::EvalArgs),
+    Eval(cli::eval::EvalArgs),
     /// Performance benchmarks (spectrum: Laplacian + factorisation + eigensolve, vs SciPy).
     Bench(bench::BenchArgs),
 }
@@ -263,7 +264,7 @@ fn main() -> ExitCode {
                 .block_on(shapeseek::server::serve(cfg))
         }),
         Command::Migrate(a) => a.run().map(|msg| println!("{msg}")),
-        Command::Eval(a) => shapeseek::eval::run(a),
+        Command::Eval(a) => cli::eval::run(a),
         Command::Bench(a) => bench::run(a),
     };
     match result {

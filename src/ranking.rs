@@ -16,14 +16,19 @@
 //!    at its centre (derivation error in [`crate::signature`]'s docs: nL1 ≤ 0.0008 on a shape's
 //!    own window). A [`Prepared`] keeps the un-normalised density `f` (mass per unit distance),
 //!    the normalised bin probabilities `p = f̂ h` and their cumulative sums.
-//! 3. [`score`] compares two [`Prepared`] with a [`QuerySpec`]: a [`Dissimilarity`] per channel,
-//!    then a dissimilarity-stage [`Aggregation`] over the channels (single: the first channel
-//!    only; sum; sum of squares; max). Kernel-, distance- and distribution-stage aggregation
-//!    are channel kinds of the signature ([`crate::signature::ChannelKind`]).
+//! 3. [`crate::search`] encodes the prepared histograms compactly, one layout per corpus, and
+//!    compares them with a [`QuerySpec`]: a [`Dissimilarity`] per channel, then a
+//!    dissimilarity-stage [`Aggregation`] over the channels (single: the first channel only;
+//!    sum; sum of squares; max). Kernel-, distance- and distribution-stage aggregation are
+//!    channel kinds of the signature ([`crate::signature::ChannelKind`]).
+//!    [`histogram_dissimilarity`] here is the reference on `f64` histograms; the tolerance of
+//!    the encoded scores against it is stated in [`crate::search::score`].
 //!
 //! ```no_run
 //! use shapeseek::spectrum::{analyze, AnalyzeOptions};
-//! use shapeseek::ranking::{calibrate, default_config, prepare_for_ranking, rank};
+//! use shapeseek::presets::default_config;
+//! use shapeseek::ranking::calibrate;
+//! use shapeseek::search::{rank_all, Corpus, Encoded, Layout, Query};
 //! use shapeseek::signature::compute_signature;
 //! # fn main() -> shapeseek::Result<()> {
 //! # let meshes: Vec<shapeseek::mesh::Mesh> = Vec::new();
@@ -33,8 +38,11 @@
 //!     .map(|m| compute_signature(&analyze(m, &AnalyzeOptions::default())?, &cfg.signature))
 //!     .collect::<shapeseek::Result<Vec<_>>>()?;
 //! let cal = calibrate(&sigs.iter().collect::<Vec<_>>(), &cfg.signature, 1);
-//! let prepared: Vec<_> = sigs.iter().map(|s| prepare_for_ranking(s, &cal)).collect();
-//! let hits = rank(&prepared[0], &prepared, &cfg.query); // (index, score), best first
+//! let layout = Layout::of(&cal);
+//! let rows: Vec<Encoded> = sigs.iter().map(|s| Encoded::from_signature(s, &cal, &layout)).collect();
+//! let corpus = Corpus::build(layout, &rows);
+//! let q = Query::new(&cfg.query, corpus.layout());
+//! let hits = rank_all(&corpus, &q, corpus.shape(0)); // (index, score), best first
 //! # let _ = hits;
 //! # Ok(())
 //! # }
@@ -51,15 +59,9 @@
 //! on empty bins and empty histograms, zero on identical inputs and symmetric. ShapeDNA channels
 //! are vectors: L1 → `Σ|a−b|`, L∞ → `max|a−b|`, anything else → Euclidean.
 //!
-//! # Agreement with REFERENCE.md (bench/mini, 24 shapes)
-//!
-//! `cargo test --release --test mini_bench -- --ignored --nocapture`: corpus windows within
-//! 0.1–1 % of the Python reference for the heat scales and CT, 2 % for Step (λ_c = 4π·10),
-//! +3 % for Geo (edge-graph Dijkstra vs heat method). mAP (All): Heat-L2-nL1-Single[t=0.1]
-//! 93.89 (reference 93.89), Heat-L2-nL1-Sum2[t=0.016..0.1] 96.90 (97.00), Heat-L2-nL1-Max 77.92
-//! (77.91), CT-L2-nL1 88.88 (89.12), `ShapeDNA[50]-L2` 88.59 (88.59), D2-nL1 85.95 (84.76),
-//! Geo-nL1 84.55 (72.29: farthest-point sources with Voronoi weights instead of 200 random
-//! ones), `default` 96.53.
+//! Agreement with the Python reference of the bench (REFERENCE.md) is measured by
+//! `cargo test --release --test mini_bench -- --ignored --nocapture`; the figures are in
+//! `docs/search.md`.
 //!
 //! Scores from [`Prepared`] values of *different* calibrations are meaningless (bins differ);
 //! the caller keeps one epoch per scan.
@@ -67,14 +69,10 @@
 //! # Complexity
 //!
 //! Calibration: O(S · channels · log Q · 60) for S shapes. Preparing one shape:
-//! O(channels · 256 · 16 · log Q). One score: O(channels · 256); histograms are contiguous `f64`
-//! arrays, so scanning the corpus is a linear pass (parallelise over candidates).
+//! O(channels · 256 · 16 · log Q). One score: O(channels · 256).
 
 pub use crate::signature::Aggregation;
-use crate::signature::{
-    ChannelKind, ChannelSpec, ChannelValues, Kernel, Norm, QuantileSketch, Signature,
-    SignatureSpec, DEFAULT_HEAT_SCALES, SMALL_HEAT_SCALES,
-};
+use crate::signature::{ChannelValues, QuantileSketch, Signature, SignatureSpec};
 use serde::{Deserialize, Serialize};
 
 /// Default number of histogram bins (paper §5).
@@ -188,6 +186,8 @@ pub struct Histogram {
     pub prob: Vec<f64>,
     /// Cumulative sums of `prob`.
     pub cdf: Vec<f64>,
+    /// In-window mass `Σ f h` (the sum of the mass per bin).
+    pub mass: f64,
 }
 
 /// What to rank by.
@@ -199,21 +199,6 @@ pub struct QuerySpec {
     pub dissimilarity: Dissimilarity,
     /// Dissimilarity-stage aggregation over `channels` ([`Aggregation::Single`]: first only).
     pub aggregation: Aggregation,
-}
-
-/// A named method: what to compute per shape and how to rank.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
-pub struct Config {
-    /// Name, as in REFERENCE.md where the configuration appears there.
-    pub name: String,
-    /// Signature to compute.
-    pub signature: SignatureSpec,
-    /// Ranking.
-    pub query: QuerySpec,
-    /// Re-ranking stages applied in order to the ranking of `query` (none by default; omitted
-    /// from the JSON when empty).
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub rerank: Vec<crate::rerank::RerankStage>,
 }
 
 /// Options of [`calibrate_with`].
@@ -448,6 +433,7 @@ pub fn histogram_from_mass(mass_bins: Vec<f64>, bin_width: f64) -> Histogram {
         density,
         prob,
         cdf,
+        mass: total,
     }
 }
 
@@ -607,391 +593,6 @@ pub fn compared_channels(q: &QuerySpec) -> &[String] {
         Aggregation::Single => &q.channels[..q.channels.len().min(1)],
         _ => &q.channels,
     }
-}
-
-/// Aggregated dissimilarity of two prepared shapes (lower = more similar; ∞ when a requested
-/// channel is missing from either).
-pub fn score(query: &Prepared, candidate: &Prepared, q: &QuerySpec) -> f64 {
-    let names = compared_channels(q);
-    if names.is_empty() {
-        return f64::INFINITY;
-    }
-    q.aggregation.apply(
-        names.iter().map(|n| {
-            channel_dissimilarity(q.dissimilarity, query.channel(n), candidate.channel(n))
-        }),
-    )
-}
-
-/// [`score`] of one query against many candidates, with the query's channels resolved once:
-/// candidates sharing the query's channel layout (one calibration) are scored without name
-/// lookups, others through [`score`]; both give the same value.
-pub struct Scorer<'a> {
-    query: &'a Prepared,
-    q: &'a QuerySpec,
-    idx: Vec<Option<usize>>,
-}
-
-impl<'a> Scorer<'a> {
-    /// Resolves the compared channels of `q` in `query`.
-    pub fn new(query: &'a Prepared, q: &'a QuerySpec) -> Self {
-        let idx = compared_channels(q)
-            .iter()
-            .map(|n| query.channel_index(n))
-            .collect();
-        Self { query, q, idx }
-    }
-
-    /// The score of `c` (equal to `score(query, c, q)`).
-    pub fn score(&self, c: &Prepared) -> f64 {
-        if c.names == self.query.names && !self.idx.is_empty() {
-            self.q.aggregation.apply(self.idx.iter().map(|&k| match k {
-                Some(k) => channel_dissimilarity(
-                    self.q.dissimilarity,
-                    self.query.channels[k].as_ref(),
-                    c.channels[k].as_ref(),
-                ),
-                None => f64::INFINITY,
-            }))
-        } else {
-            score(self.query, c, self.q)
-        }
-    }
-}
-
-fn fmt_range(ts: &[f64]) -> String {
-    match ts {
-        [] => String::new(),
-        [t] => format!("t={t}"),
-        [a, .., b] => format!("t={a}..{b}"),
-    }
-}
-
-/// The six default heat scales under the L2 norm: the signature shared by every `Heat-L2-*`
-/// configuration.
-pub fn heat_l2_spec() -> SignatureSpec {
-    SignatureSpec::with_channels(
-        DEFAULT_HEAT_SCALES
-            .iter()
-            .map(|&t| ChannelSpec::heat(t, Norm::L2))
-            .collect(),
-    )
-}
-
-fn single_channel_spec(c: ChannelSpec) -> SignatureSpec {
-    SignatureSpec::with_channels(vec![c])
-}
-
-fn config(
-    name: String,
-    signature: SignatureSpec,
-    channels: Vec<String>,
-    d: Dissimilarity,
-    a: Aggregation,
-) -> Config {
-    Config {
-        name,
-        signature,
-        query: QuerySpec {
-            channels,
-            dissimilarity: d,
-            aggregation: a,
-        },
-        rerank: Vec::new(),
-    }
-}
-
-/// The eight dissimilarities of paper Table 1.
-const TABLE1: [Dissimilarity; 8] = [
-    Dissimilarity::L1,
-    Dissimilarity::L2,
-    Dissimilarity::NL1,
-    Dissimilarity::NL2,
-    Dissimilarity::KL,
-    Dissimilarity::Bhattacharyya,
-    Dissimilarity::Chi2,
-    Dissimilarity::Emd,
-];
-
-/// Scores `query` against every candidate (in parallel) and returns `(index, score)` sorted by
-/// increasing score, ties by index (the bench protocol's manifest order). Channel names are
-/// resolved once when the candidates share the query's channel layout (one calibration).
-pub fn rank(query: &Prepared, candidates: &[Prepared], q: &QuerySpec) -> Vec<(usize, f64)> {
-    use rayon::prelude::*;
-    let scorer = Scorer::new(query, q);
-    let mut out: Vec<(usize, f64)> = candidates
-        .par_iter()
-        .enumerate()
-        .map(|(i, c)| (i, scorer.score(c)))
-        .collect();
-    out.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
-    out
-}
-
-/// Every named configuration, named as in REFERENCE.md (`<Kernel>-<Norm>-<Dissimilarity>-
-/// <Aggregation>[params]`):
-///
-/// * `Heat-L2-<D>-Single[t=<t>]` for the six default scales and every dissimilarity `<D>` of
-///   Table 1 (`L1 L2 nL1 nL2 KL Bhatt chi2 EMD`) plus `Linf`;
-/// * `Heat-L2-<D>-{Sum,Sum2,Max}` over the six scales and `…[t=0.016..0.1]` over the three
-///   smallest (Table 3, dissimilarity-stage aggregation);
-/// * `CT-L2-<D>`, `Step-L2-<D>[lc=4pi*10]`, `Step-L2-<D>[lc=4pi*30]`, `D2-<D>`, `Geo-<D>`,
-///   `ShapeDNA[50]-L2` (Table 2 and baselines);
-/// * `Heat-L1-nL1-Single[t=0.1]`, `Heat-Linf-nL1-Single[t=0.1]` (paper Table 2, H-L1 / H-L∞);
-/// * the other aggregation stages over the three smallest scales:
-///   `Heat-L2-nL1-KernelSum[t=0.016..0.1]`, `Heat-L2-nL1-DistanceSum[…]`,
-///   `Heat-L2-nL1-DistanceSum2[…]`, `Heat-L2-nL1-DistanceMax[…]`,
-///   `Heat-L2-nL1-DistributionSum[…]`;
-/// * presets: `Mahmoudi-Sapiro[t=0.1]` (heat, L2, L2 dissimilarity, single t), `DSS` (sum over
-///   the six scales of Mahmoudi–Sapiro), `GPS` (commute time, L2, L2 dissimilarity),
-///   `paper-best` (heat, L2, nL1, max over six scales), and `default` ([`default_config`]).
-///
-/// Configurations of one family share one [`SignatureSpec`] (same key), so a harness computes
-/// each shape's signature once per family.
-pub fn paper_configs() -> Vec<Config> {
-    let mut out = Vec::new();
-    let heat = heat_l2_spec();
-    let names = heat.channel_names();
-    let small: Vec<String> = names[..SMALL_HEAT_SCALES.len()].to_vec();
-    let mut dissims: Vec<Dissimilarity> = TABLE1.to_vec();
-    dissims.push(Dissimilarity::LInf);
-    for (i, &t) in DEFAULT_HEAT_SCALES.iter().enumerate() {
-        for &d in &dissims {
-            out.push(config(
-                format!("Heat-L2-{}-Single[t={t}]", d.label()),
-                heat.clone(),
-                vec![names[i].clone()],
-                d,
-                Aggregation::Single,
-            ));
-        }
-    }
-    for (suffix, chans) in [
-        (String::new(), names.clone()),
-        (
-            format!("[{}]", fmt_range(&SMALL_HEAT_SCALES)),
-            small.clone(),
-        ),
-    ] {
-        for &d in &TABLE1 {
-            for a in [Aggregation::Sum, Aggregation::Sum2, Aggregation::Max] {
-                out.push(config(
-                    format!("Heat-L2-{}-{}{suffix}", d.label(), a.label()),
-                    heat.clone(),
-                    chans.clone(),
-                    d,
-                    a,
-                ));
-            }
-        }
-    }
-    let four_pi = 4.0 * std::f64::consts::PI;
-    let families: Vec<(String, String, ChannelSpec)> = vec![
-        ("CT-L2".into(), String::new(), ChannelSpec::commute_time()),
-        (
-            "Step-L2".into(),
-            "[lc=4pi*10]".into(),
-            ChannelSpec::step(four_pi * 10.0),
-        ),
-        (
-            "Step-L2".into(),
-            "[lc=4pi*30]".into(),
-            ChannelSpec::step(four_pi * 30.0),
-        ),
-        ("D2".into(), String::new(), ChannelSpec::d2(2000)),
-        ("Geo".into(), String::new(), ChannelSpec::geodesic(None)),
-    ];
-    for (prefix, suffix, ch) in families {
-        let spec = single_channel_spec(ch);
-        let chans = spec.channel_names();
-        for &d in &TABLE1 {
-            out.push(config(
-                format!("{prefix}-{}{suffix}", d.label()),
-                spec.clone(),
-                chans.clone(),
-                d,
-                Aggregation::Single,
-            ));
-        }
-    }
-    let dna = single_channel_spec(ChannelSpec::shape_dna(50));
-    out.push(config(
-        "ShapeDNA[50]-L2".into(),
-        dna.clone(),
-        dna.channel_names(),
-        Dissimilarity::L2,
-        Aggregation::Single,
-    ));
-    for (label, norm) in [("L1", Norm::L1), ("Linf", Norm::LInf)] {
-        let spec = single_channel_spec(ChannelSpec::heat(0.1, norm));
-        out.push(config(
-            format!("Heat-{label}-nL1-Single[t=0.1]"),
-            spec.clone(),
-            spec.channel_names(),
-            Dissimilarity::NL1,
-            Aggregation::Single,
-        ));
-    }
-    let ts = SMALL_HEAT_SCALES.to_vec();
-    let range = fmt_range(&ts);
-    let staged: Vec<(String, ChannelKind)> = vec![
-        (
-            "KernelSum".into(),
-            ChannelKind::Spectral {
-                kernel: Kernel::HeatAggregate {
-                    ts: ts.clone(),
-                    aggregation: Aggregation::Sum,
-                },
-                norm: Norm::L2,
-            },
-        ),
-        (
-            "DistanceSum".into(),
-            ChannelKind::DistanceAggregate {
-                ts: ts.clone(),
-                norm: Norm::L2,
-                aggregation: Aggregation::Sum,
-            },
-        ),
-        (
-            "DistanceSum2".into(),
-            ChannelKind::DistanceAggregate {
-                ts: ts.clone(),
-                norm: Norm::L2,
-                aggregation: Aggregation::Sum2,
-            },
-        ),
-        (
-            "DistanceMax".into(),
-            ChannelKind::DistanceAggregate {
-                ts: ts.clone(),
-                norm: Norm::L2,
-                aggregation: Aggregation::Max,
-            },
-        ),
-        (
-            "DistributionSum".into(),
-            ChannelKind::DistributionSum {
-                ts: ts.clone(),
-                norm: Norm::L2,
-            },
-        ),
-    ];
-    for (label, kind) in staged {
-        let spec = single_channel_spec(ChannelSpec { kind });
-        out.push(config(
-            format!("Heat-L2-nL1-{label}[{range}]"),
-            spec.clone(),
-            spec.channel_names(),
-            Dissimilarity::NL1,
-            Aggregation::Single,
-        ));
-    }
-    // Presets of §3.3 and §5.
-    out.push(config(
-        "Mahmoudi-Sapiro[t=0.1]".into(),
-        heat.clone(),
-        vec![names[2].clone()],
-        Dissimilarity::L2,
-        Aggregation::Single,
-    ));
-    out.push(config(
-        "DSS".into(),
-        heat.clone(),
-        names.clone(),
-        Dissimilarity::L2,
-        Aggregation::Sum,
-    ));
-    let ct = single_channel_spec(ChannelSpec::commute_time());
-    out.push(config(
-        "GPS".into(),
-        ct.clone(),
-        ct.channel_names(),
-        Dissimilarity::L2,
-        Aggregation::Single,
-    ));
-    out.push(config(
-        "paper-best".into(),
-        heat.clone(),
-        names.clone(),
-        Dissimilarity::NL1,
-        Aggregation::Max,
-    ));
-    out.push(default_config());
-    out
-}
-
-/// The product default: heat kernel, L2 norm, the three smallest default scales
-/// (t = 0.016, 0.04, 0.1, i.e. t·λ_1 ≈ 0.1–0.6 on unit-area shapes), nL1, summed over scales.
-///
-/// Why: nL1 is the paper's best dissimilarity (Table 1) and does not depend on in-window mass;
-/// scales with t·λ_1 ≫ 1 see only the first few eigenfunctions and were measured worse
-/// (REFERENCE.md Table 3: every single scale above 0.1 and every aggregate including them rank
-/// lower), while aggregating a few small scales beat each single one; Sum is preferred to Sum²
-/// and Max because it weights the scales evenly and no single scale can dominate, the least
-/// tuned choice among near-equal results (83.47 vs 83.59 vs 82.46 mAP there).
-///
-/// Scale selection (`docs/quality.md` §2): every shape's eigenvalues are multiplied by
-/// `c = 4π / (ŝ · area)`, `ŝ` the Weyl slope fitted over its first 100 eigenpairs
-/// ([`crate::scale::SpectrumScaling::WeylFit`], [`crate::scale::WEYL_FIT_EIGENPAIRS`]). As a
-/// uniform scaling does (eq. 17, `λ' = α⁻²λ`), this relabels time: the heat kernel `e^{−tλ}`
-/// (eq. 5) is evaluated at `c·t`, so the three times sit at the same place in every shape's own
-/// spectrum, boundary and discretisation included. Measured on bench/dev: All mAP 83.37 → 84.30
-/// (partiality +2.5, topology +1.5); on the class split the held-out classes 88.76 → 90.76 at
-/// a tie on the tune classes (89.00 → 88.93). The band is fixed because the fitted slope depends
-/// on it (`crate::scale` docs: a fit over 10 / 30 / 99 modes gives dev 78.9 / 86.2 / 84.3, and
-/// the class split confirms no narrower band): the signature does not change when an index
-/// computes more eigenpairs, and an index with fewer than 100 (e.g. the server tests' k = 30)
-/// keeps the unscaled unit-area spectrum rather than a fit over a band never validated.
-///
-/// Short range (`docs/quality.md` §3b): each of the three channels is also compared on its
-/// pairs closer than [`SHORT_RANGE_RADII`] (a [`ChannelKind::Truncated`] channel, calibrated
-/// and histogrammed on its own), six channels summed. Topology bridges change the long diffusion
-/// distances and partial shapes lose pairs at all ranges; the full range and the short range
-/// fail on different shapes. dev 84.30 → 86.28, tune / held-out classes 91.05 / 91.06.
-///
-/// Re-ranking (`docs/quality.md` §7): the top 200 are re-ordered by their reciprocal
-/// neighbourhoods within the shortlist ([`crate::rerank::ReciprocalStage`] with its defaults:
-/// neighbourhood sizes 8, 16, 32 averaged so that no class size is assumed). dev 86.28 →
-/// 91.17, every transformation class ≥ 81.8; tune / held-out classes 94.32 / 93.52.
-pub fn default_config() -> Config {
-    let full: Vec<ChannelSpec> = SMALL_HEAT_SCALES
-        .iter()
-        .map(|&t| ChannelSpec::heat(t, Norm::L2))
-        .collect();
-    let short = full
-        .iter()
-        .zip(SHORT_RANGE_RADII)
-        .map(|(c, r)| ChannelSpec::truncated(c.clone(), r));
-    let channels: Vec<ChannelSpec> = full.iter().cloned().chain(short).collect();
-    let mut spec = SignatureSpec::with_channels(channels);
-    spec.spectrum_scaling = crate::scale::SpectrumScaling::WeylFit {
-        eigenpairs: Some(crate::scale::WEYL_FIT_EIGENPAIRS),
-    };
-    Config {
-        name: "default".into(),
-        query: QuerySpec {
-            channels: spec.channel_names(),
-            dissimilarity: Dissimilarity::NL1,
-            aggregation: Aggregation::Sum,
-        },
-        signature: spec,
-        rerank: vec![crate::rerank::RerankStage::Reciprocal(
-            crate::rerank::ReciprocalStage::default(),
-        )],
-    }
-}
-
-/// Radii (unit-area units, after the Weyl scaling) of the default's short-range channels, one
-/// per [`SMALL_HEAT_SCALES`] time: the 75th percentile of the pooled diffusion distances of the
-/// bench/dev *tune* classes (cat, horse, face, camel) at t = 0.016, 0.04, 0.1, so that the
-/// held-out classes never informed them (`docs/quality.md` §3b).
-#[allow(clippy::approx_constant)] // 3.14 is a measured percentile, not π.
-pub const SHORT_RANGE_RADII: [f64; 3] = [3.14, 2.1, 1.09];
-
-/// The configuration called `name` in [`paper_configs`].
-pub fn config_by_name(name: &str) -> Option<Config> {
-    paper_configs().into_iter().find(|c| c.name == name)
 }
 
 #[cfg(test)]

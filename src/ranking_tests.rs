@@ -1,6 +1,7 @@
 //! Tests of [`crate::ranking`] (`cargo test --release --lib ranking`).
 
 use super::*;
+use crate::presets::{config_by_name, default_config, paper_configs};
 use crate::signature::{ChannelData, PairQuadrature};
 
 fn h(mass: &[f64], width: f64) -> Histogram {
@@ -114,7 +115,7 @@ fn aggregation_by_hand() {
         names: vec!["a".into(), "b".into()],
         channels: vec![
             Some(PreparedChannel::Histogram(h(&[1.0, 0.0, 1.0, 2.0], 0.5))),
-            Some(PreparedChannel::Histogram(h(&[1.0, 0.0, 0.0], 1.0))),
+            Some(PreparedChannel::Histogram(h(&[1.0, 0.0, 0.0, 0.0], 1.0))),
         ],
     };
     let q = Prepared {
@@ -122,9 +123,29 @@ fn aggregation_by_hand() {
         names: vec!["a".into(), "b".into()],
         channels: vec![
             Some(PreparedChannel::Histogram(h(&[0.0, 0.0, 2.0, 2.0], 0.5))),
-            Some(PreparedChannel::Histogram(h(&[0.0, 0.0, 1.0], 1.0))),
+            Some(PreparedChannel::Histogram(h(&[0.0, 0.0, 1.0, 0.0], 1.0))),
         ],
     };
+    // Scored on the corpus encoding (quantised to within 2·bins/T per channel).
+    use crate::search::{Encoded, Layout, Query};
+    let layout = Layout::of(&Calibration {
+        epoch: 1,
+        spec_key: String::new(),
+        channel_names: vec!["a".into(), "b".into()],
+        window_max: vec![2.0, 4.0],
+        bins: 4,
+        bandwidth_bins: 1.0,
+        percentile: 0.95,
+        shapes: 2,
+    });
+    let (p, q) = (
+        Encoded::from_prepared(&p, &layout),
+        Encoded::from_prepared(&q, &layout),
+    );
+    let score = |a: &Encoded, b: &Encoded, spec: &QuerySpec| {
+        Query::new(spec, &layout).score(&layout, a.view(), b.view())
+    };
+    let close = |a: f64, b: f64| (a - b).abs() <= 2.0 * 8.0 / crate::search::corpus::TOTAL as f64;
     let spec = |a: Aggregation| QuerySpec {
         channels: vec!["a".into(), "b".into()],
         dissimilarity: Dissimilarity::NL1,
@@ -332,14 +353,21 @@ fn end_to_end_ranking() {
         .collect();
     let refs: Vec<&Signature> = sigs.iter().collect();
     let cal = calibrate(&refs, &cfg.signature, 1);
-    let prep: Vec<Prepared> = sigs.iter().map(|s| prepare_for_ranking(s, &cal)).collect();
-    let d = |i: usize, j: usize| score(&prep[i], &prep[j], &cfg.query);
+    use crate::search::{rank_all, Corpus, Encoded, Layout, Query};
+    let layout = Layout::of(&cal);
+    let rows: Vec<Encoded> = sigs
+        .iter()
+        .map(|s| Encoded::from_signature(s, &cal, &layout))
+        .collect();
+    let corpus = Corpus::build(layout, &rows);
+    let q = Query::new(&cfg.query, corpus.layout());
+    let d = |i: usize, j: usize| q.score(corpus.layout(), corpus.shape(i), corpus.shape(j));
     assert_eq!(d(0, 0), 0.0);
     assert!(close(d(0, 1), d(1, 0)));
     assert!(d(0, 1) < d(0, 2), "bent {} vs torus {}", d(0, 1), d(0, 2));
     assert!(d(1, 0) < d(1, 2));
-    // rank() agrees with score() and orders by score.
-    let r = rank(&prep[0], &prep, &cfg.query);
+    // rank_all() agrees with score() and orders by score.
+    let r = rank_all(&corpus, &q, corpus.shape(0));
     assert_eq!(r.iter().map(|x| x.0).collect::<Vec<_>>(), vec![0, 1, 2]);
     for &(i, sc) in &r {
         assert_eq!(sc, d(0, i));

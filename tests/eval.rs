@@ -9,7 +9,7 @@ use shapeseek::eval::metrics::{
     rank, roc_curve, roc_on_grid, roc_tpr_at, ALL, ALL_WO_SCALE, CURVE_GRID,
 };
 use shapeseek::eval::report::Reference;
-use shapeseek::eval::{evaluate as run_eval, load_configs, union_specs, EvalArgs};
+use shapeseek::eval::{evaluate as run_eval, load_configs, union_specs, EvalOptions};
 use shapeseek::mesh::generate;
 use shapeseek::mesh::Mesh;
 use std::path::{Path, PathBuf};
@@ -358,7 +358,7 @@ fn configs_presets_files_and_unions() {
     assert!(all.iter().any(|c| c.name == "default"));
     assert_eq!(load_configs(Some("default")).unwrap().len(), 1);
     assert!(load_configs(Some("no-such-config-name")).is_err());
-    let d = shapeseek::ranking::default_config();
+    let d = shapeseek::presets::default_config();
     let dir = tempfile::tempdir().unwrap();
     // JSON: a list of two configs.
     let mut other = d.clone();
@@ -487,7 +487,7 @@ fn generated_bench(dir: &Path) -> PathBuf {
 fn end_to_end_on_generated_meshes_with_cache() {
     let tmp = tempfile::tempdir().unwrap();
     let manifest = generated_bench(tmp.path());
-    let mut args = EvalArgs::new(&manifest);
+    let mut args = EvalOptions::new(&manifest);
     args.k = 30;
     args.config = Some("default".into());
     args.cache = Some(tmp.path().join("cache"));
@@ -568,7 +568,7 @@ fn end_to_end_on_generated_meshes_with_cache() {
     assert_eq!(ap1, ap2);
 
     // A configuration needing a subset of the cached channels reuses the cached signatures.
-    let mut sub = shapeseek::ranking::default_config();
+    let mut sub = shapeseek::presets::default_config();
     sub.name = "first-scale".into();
     sub.signature.channels.truncate(1);
     sub.query.channels.truncate(1);
@@ -630,7 +630,7 @@ fn default_on_shared_split(split: &str) -> Option<shapeseek::eval::EvalOutcome> 
         return None;
     }
     let tmp = tempfile::tempdir().unwrap();
-    let mut args = EvalArgs::new(&manifest);
+    let mut args = EvalOptions::new(&manifest);
     args.config = Some("default".into());
     args.cache = Some(tmp.path().join("cache"));
     let out = run_eval(&args).unwrap();

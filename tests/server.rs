@@ -362,7 +362,7 @@ fn ingest_every_format_read_back_list_delete() {
     let sig = get(a, &format!("/v1/shapes/{mp_id}/signature"));
     assert_eq!(sig.status, 200);
     let sig = sig.json();
-    let default_channels = shapeseek::ranking::default_config()
+    let default_channels = shapeseek::presets::default_config()
         .signature
         .channel_names();
     let names: Vec<String> = sig["signature"]["channels"]
@@ -570,10 +570,12 @@ fn max_sig_diff(a: &shapeseek::signature::Signature, b: &shapeseek::signature::S
 }
 
 /// The server's ranking equals the library's (what `eval` does): `calibrate` over all stored
-/// signatures, `prepare_for_ranking`, `score`, sort ascending.
+/// signatures, the corpus encoding, `Query::score`, sort ascending.
 #[test]
 fn ranking_equals_library_ranking() {
-    use shapeseek::ranking::{calibrate, default_config, prepare_for_ranking, score, QuerySpec};
+    use shapeseek::presets::default_config;
+    use shapeseek::ranking::{calibrate, QuerySpec};
+    use shapeseek::search::{Corpus, Encoded, Layout, Query};
     use shapeseek::signature::{compute_signature, Signature};
 
     let dir = tempfile::tempdir().unwrap();
@@ -611,7 +613,16 @@ fn ranking_equals_library_ranking() {
 
     let refs: Vec<&Signature> = sigs.iter().collect();
     let cal = calibrate(&refs, &cfg.signature, 0);
-    let prepared: Vec<_> = sigs.iter().map(|s| prepare_for_ranking(s, &cal)).collect();
+    let layout = Layout::of(&cal);
+    let rows: Vec<Encoded> = sigs
+        .iter()
+        .map(|s| Encoded::from_signature(s, &cal, &layout))
+        .collect();
+    let corpus = Corpus::build(layout, &rows);
+    let score = |i: usize, j: usize, spec: &QuerySpec| {
+        let l = corpus.layout();
+        Query::new(spec, l).score(l, corpus.shape(i), corpus.shape(j))
+    };
     let specs: Vec<(QuerySpec, Value)> = vec![
         (cfg.query.clone(), json!(null)),
         (
@@ -625,9 +636,8 @@ fn ranking_equals_library_ranking() {
     ];
     for (spec, overrides) in &specs {
         for (qi, (qid, ..)) in shapes.iter().enumerate() {
-            let mut expected: Vec<(f64, usize)> = (0..shapes.len())
-                .map(|j| (score(&prepared[qi], &prepared[j], spec), j))
-                .collect();
+            let mut expected: Vec<(f64, usize)> =
+                (0..shapes.len()).map(|j| (score(qi, j, spec), j)).collect();
             expected.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
             let mut req =
                 json!({"id": qid, "top_k": shapes.len(), "include_self": true, "rerank": []});
@@ -661,7 +671,7 @@ fn ranking_equals_library_ranking() {
     for (qi, (qid, ..)) in shapes.iter().enumerate() {
         let mut first: Vec<(f64, usize)> = (0..shapes.len())
             .filter(|&j| j != qi)
-            .map(|j| (score(&prepared[qi], &prepared[j], &cfg.query), j))
+            .map(|j| (score(qi, j, &cfg.query), j))
             .collect();
         first.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
         let items: Vec<usize> = std::iter::once(qi)
@@ -672,7 +682,7 @@ fn ranking_equals_library_ranking() {
         for (x, &i) in items.iter().enumerate() {
             for (y, &j) in items.iter().enumerate() {
                 if x != y {
-                    d[x * m + y] = score(&prepared[i], &prepared[j], &cfg.query);
+                    d[x * m + y] = score(i, j, &cfg.query);
                 }
             }
         }

@@ -10,12 +10,15 @@
 //!    (rayon), cached on disk ([`cache`]) under the mesh content hash, the analysis options
 //!    (preparation and eigen options, `k` among them) and `SignatureSpec::key()`. Default cache
 //!    directory: `$XDG_CACHE_HOME/shapeseek/eval`, else `./.cache/shapeseek-eval`.
-//! 3. Calibrates the corpus windows and builds the histograms, then, per configuration, scores
-//!    every shape against every other and evaluates the rankings ([`metrics`]).
+//! 3. Calibrates the corpus windows and encodes every shape in the search corpus layout
+//!    ([`crate::search::Corpus`], the layout the server scans), then, per configuration, scores
+//!    every shape against every other with the search's scoring function (per-channel matrices
+//!    shared by the configurations of a family), runs the configuration's stages through
+//!    [`crate::search::run`] ([`rerank`]) and evaluates the rankings ([`metrics`]).
 //! 4. Writes a Markdown summary to stdout, and optionally `--json OUT` and `--out DIR`
 //!    (`results.md` with tables shaped like the bench REFERENCE.md, ROC / PR curves as SVG).
 //!
-//! Configurations: without `--config`, `ranking::paper_configs()` plus `ranking::default_config()`.
+//! Configurations: without `--config`, `presets::paper_configs()` plus `presets::default_config()`.
 //! `--config` takes a JSON or TOML file holding one configuration (`{name, signature, query}`), a
 //! list of them, or `{configs = [...]}`; or a preset: `paper`, `default`, `all`, or a comma-separated
 //! list of configuration names from the presets. Configurations whose signature specifications
@@ -27,11 +30,25 @@ pub mod manifest;
 pub mod metrics;
 pub mod plot;
 pub mod report;
+pub mod rerank;
+
+mod configs;
+mod output;
+mod shapes;
+
+pub use configs::{alias_of, covers, load_configs, union_specs};
+use output::{markdown_report, write_curves, write_matrices};
+pub(crate) use shapes::ANALYSIS_VERSION;
+use shapes::{dur, process_shape, Progress, ShapeResult, StageClock};
 
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
-use crate::ranking::{self, Config, Prepared, QuerySpec};
-use crate::signature::{compute_signature, Signature, SignatureSpec};
 use crate::spectrum::{analyze, AnalyzeOptions};
+use crate::presets::{self, Config};
+use crate::ranking::{self, Dissimilarity, QuerySpec};
+use crate::search::corpus::{Corpus, Encoded, Layout};
+use crate::search::score::channel_dissimilarity;
+use crate::search::{Query, Stage};
+use crate::signature::{compute_signature, Signature, SignatureSpec};
 use crate::{Error, Result};
 use cache::{hash_parts, Cache};
 use manifest::Manifest;
@@ -39,91 +56,62 @@ use metrics::Evaluation;
 use rayon::prelude::*;
 use report::{ConfigResult, Failure, Reference};
 use serde_json::{json, Value};
+use std::collections::HashMap;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-/// Arguments of `shapeseek eval`.
-#[derive(Debug, Clone, clap::Args)]
-pub struct EvalArgs {
+/// Options of [`evaluate`] (the command line's flags are in the binary's `cli::eval`).
+#[derive(Debug, Clone)]
+pub struct EvalOptions {
     /// Manifest CSV (`id,path,class,transform,strength,source_pose`; paths relative to it).
-    #[arg(long)]
     pub manifest: PathBuf,
     /// Configurations: a JSON/TOML file (one config, a list, or `{configs=[...]}`), or a preset
-    /// (`paper`, `default`, `all`, or comma-separated configuration names). Default: `all`
-    /// (the paper's configurations and the baselines, plus the product default).
-    #[arg(long)]
+    /// (`paper`, `default`, `all`, or comma-separated configuration names); `None`: `all`.
     pub config: Option<String>,
     /// Write the results as JSON here.
-    #[arg(long)]
     pub json: Option<PathBuf>,
     /// Write `results.md` and ROC / PR curves (SVG) into this folder.
-    #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Cache folder (default `$XDG_CACHE_HOME/shapeseek/eval`, else `./.cache/shapeseek-eval`).
-    #[arg(long)]
+    /// Cache folder (`None`: [`cache::default_dir`]).
     pub cache: Option<PathBuf>,
     /// Do not read or write the cache.
-    #[arg(long)]
     pub no_cache: bool,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
+    /// Worker threads (`None`: all cores).
     pub jobs: Option<usize>,
     /// Number of eigenpairs.
-    #[arg(long, default_value_t = 100)]
     pub k: usize,
-    /// Reference figures to show side by side: `reference-map.json` style JSON or a REFERENCE.md.
-    /// Default: `reference-map.json`, else `REFERENCE.md`, next to the manifest, else the
-    /// REFERENCE.md of the parent folder when it describes this manifest's split.
-    #[arg(long)]
+    /// Reference figures to show side by side (`None`: [`find_reference`]).
     pub reference: Option<PathBuf>,
-    /// Also print the per-strength mAP table of every configuration (the report has it for the
-    /// configurations of REFERENCE.md's per-strength table and `default`).
-    #[arg(long)]
-    pub per_strength: bool,
     /// No progress output.
-    #[arg(long)]
     pub quiet: bool,
-    // --- Retrieval-quality options: see `crate::rerank` and docs/quality.md. ---
-    /// Re-ranking stage applied to every configuration's ranking, evaluated as an extra
-    /// configuration `<config>+<STAGE>` (repeatable): `sgw:K[:key=value]...`, a JSON stage or a
-    /// JSON file (see `shapeseek::rerank::eval`).
-    #[arg(long)]
-    pub rerank: Vec<String>,
-    /// Only the manifest rows of these classes (comma-separated), e.g. for a class split.
-    #[arg(long, value_delimiter = ',')]
+    /// Extra stage lists applied to every configuration's ranking, each evaluated as a
+    /// configuration `<config>+<label>` (an empty list re-evaluates the configuration).
+    pub rerank: Vec<(String, Vec<Stage>)>,
+    /// Only the manifest rows of these classes.
     pub classes: Vec<String>,
-    /// Keep at most this many rows of each class (a pseudo-random subset, fixed by
-    /// `--sample-seed`): smaller relevant sets and fewer distractors, e.g. to check that a stage
-    /// does not depend on the class size.
-    #[arg(long)]
+    /// Keep at most this many rows of each class (a pseudo-random subset fixed by
+    /// `sample_seed`).
     pub per_class: Option<usize>,
-    /// Seed of `--per-class`'s subset.
-    #[arg(long, default_value_t = 0)]
+    /// Seed of `per_class`'s subset.
     pub sample_seed: u64,
-    /// Laplace–Beltrami operator: cotangent or intrinsic-delaunay.
-    #[arg(long, default_value = "cotangent")]
-    pub laplacian: String,
-    /// Histogram window: this fraction of the pooled corpus distances (paper: 0.95). Smaller
-    /// windows keep only the short-range part of every distribution (truncated distance range).
-    #[arg(long, default_value_t = 0.95)]
+    /// Laplace–Beltrami operator.
+    pub laplacian: crate::laplace::LaplacianKind,
+    /// Histogram window: this fraction of the pooled corpus distances (paper: 0.95).
     pub window_percentile: f64,
-    /// Keep every mesh at its own size (no unit-area normalisation): the "raw" runs that show
-    /// what scaling does to each kernel (paper Table 2's Scale row).
-    #[arg(long)]
+    /// Keep every mesh at its own size (no unit-area normalisation).
     pub no_normalize: bool,
-    /// Write every configuration's all-pairs dissimilarity matrix (re-ranked rows: ranks) as JSON
-    /// here, with the manifest's ids, classes and transforms, for analysis outside shapeseek.
-    #[arg(long)]
+    /// Write every configuration's all-pairs dissimilarity matrix (re-ranked rows: ranks) as
+    /// JSON here.
     pub matrices: Option<PathBuf>,
 }
 
-impl EvalArgs {
-    /// Arguments with defaults for a manifest (for programmatic use and tests).
+impl EvalOptions {
+    /// Options with defaults for a manifest.
     pub fn new(manifest: impl Into<PathBuf>) -> Self {
-        EvalArgs {
+        EvalOptions {
             manifest: manifest.into(),
             config: None,
             json: None,
@@ -133,13 +121,12 @@ impl EvalArgs {
             jobs: None,
             k: 100,
             reference: None,
-            per_strength: false,
             quiet: true,
             rerank: Vec::new(),
             classes: Vec::new(),
             per_class: None,
             sample_seed: 0,
-            laplacian: "cotangent".into(),
+            laplacian: crate::laplace::LaplacianKind::Cotangent,
             no_normalize: false,
             window_percentile: 0.95,
             matrices: None,
@@ -170,9 +157,6 @@ pub struct Timings {
     pub scoring_s: f64,
     /// Of which: rankings, AP, ROC, PR and their aggregation (wall).
     pub metrics_s: f64,
-    /// Configurations scored pair by pair with `ranking::score` because the per-channel
-    /// matrices did not reproduce it (expected 0).
-    pub direct_fallbacks: usize,
     /// Reports (wall).
     pub report_s: f64,
     /// Whole run (wall).
@@ -210,366 +194,7 @@ impl EvalOutcome {
     }
 }
 
-/// Runs `shapeseek eval`: evaluates, prints the Markdown summary and stage times to stdout and
-/// writes the requested files.
-pub fn run(args: &EvalArgs) -> Result<()> {
-    let out = evaluate(args)?;
-    print!("{}", out.markdown);
-    if args.per_strength {
-        println!(
-            "\n## mAP per strength (%)\n\n{}",
-            report::per_strength_table(&out.results)
-        );
-    }
-    Ok(())
-}
-
-/// Resolves `--config`.
-pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
-    let presets = || {
-        let mut v = ranking::paper_configs();
-        let d = ranking::default_config();
-        if !v.iter().any(|c| c.name == d.name) {
-            v.push(d);
-        }
-        v
-    };
-    let Some(spec) = spec else {
-        return Ok(presets());
-    };
-    let path = Path::new(spec);
-    if path.is_file() {
-        let text = std::fs::read_to_string(path)?;
-        let is_toml = path.extension().and_then(|e| e.to_str()) == Some("toml");
-        let v: Value = if is_toml {
-            let t: toml::Value = toml::from_str(&text)
-                .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?;
-            serde_json::to_value(t)
-                .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?
-        } else {
-            serde_json::from_str(&text)
-                .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?
-        };
-        let items = match v {
-            Value::Array(a) => a,
-            Value::Object(ref o) if o.contains_key("configs") => match &o["configs"] {
-                Value::Array(a) => a.clone(),
-                _ => {
-                    return Err(Error::InvalidArgument(format!(
-                        "config {spec}: 'configs' must be a list"
-                    )))
-                }
-            },
-            other => vec![other],
-        };
-        let mut out = Vec::new();
-        for (i, item) in items.into_iter().enumerate() {
-            let c: Config = serde_json::from_value(item)
-                .map_err(|e| Error::InvalidArgument(format!("config {spec}, entry {i}: {e}")))?;
-            for st in &c.rerank {
-                st.validate().map_err(|e| {
-                    Error::InvalidArgument(format!("config {spec}, entry {i}: rerank: {e}"))
-                })?;
-            }
-            out.push(c);
-        }
-        if out.is_empty() {
-            return Err(Error::InvalidArgument(format!(
-                "config {spec}: no configuration"
-            )));
-        }
-        return Ok(out);
-    }
-    match spec {
-        "all" => Ok(presets()),
-        "paper" => Ok(ranking::paper_configs()),
-        "default" => Ok(vec![ranking::default_config()]),
-        names => {
-            let all = presets();
-            names
-                .split(',')
-                .map(|n| n.trim())
-                .filter(|n| !n.is_empty())
-                .map(|n| {
-                    all.iter().find(|c| c.name == n).cloned().ok_or_else(|| {
-                        Error::InvalidArgument(format!(
-                            "--config {n}: not a file and not a preset (paper, default, all) or configuration name; known: {}",
-                            all.iter().map(|c| c.name.as_str()).collect::<Vec<_>>().join(", ")
-                        ))
-                    })
-                })
-                .collect()
-        }
-    }
-}
-
-/// Groups of configurations sharing one signature specification: the union of their channels,
-/// for specifications that are equal apart from the channel list.
-pub fn union_specs(configs: &[Config]) -> (Vec<SignatureSpec>, Vec<usize>) {
-    let mut specs: Vec<SignatureSpec> = Vec::new();
-    let mut bases: Vec<Value> = Vec::new();
-    let mut group_of = Vec::with_capacity(configs.len());
-    for c in configs {
-        let mut base = c.signature.clone();
-        base.channels.clear();
-        let bv = serde_json::to_value(&base).unwrap_or(Value::Null);
-        let g = match bases.iter().position(|b| *b == bv && bv != Value::Null) {
-            Some(g) => g,
-            None => {
-                bases.push(bv);
-                specs.push(base);
-                specs.len() - 1
-            }
-        };
-        // Channels are identified by name (as queries refer to them).
-        for ch in &c.signature.channels {
-            let name = ch.name();
-            if !specs[g].channels.iter().any(|x| x.name() == name) {
-                specs[g].channels.push(ch.clone());
-            }
-        }
-        group_of.push(g);
-    }
-    (specs, group_of)
-}
-
-fn dur(ns: &AtomicU64) -> f64 {
-    ns.load(Ordering::Relaxed) as f64 * 1e-9
-}
-
-fn add(ns: &AtomicU64, d: Duration) {
-    ns.fetch_add(d.as_nanos() as u64, Ordering::Relaxed);
-}
-
-#[derive(Default)]
-struct StageClock {
-    read: AtomicU64,
-    prepare: AtomicU64,
-    eigen: AtomicU64,
-    signature: AtomicU64,
-    cache: AtomicU64,
-}
-
-/// Progress reporting: an indicatif bar on a terminal, plain periodic lines otherwise.
-struct Progress {
-    bar: Option<indicatif::ProgressBar>,
-    plain: bool,
-    total: usize,
-    done: AtomicUsize,
-    last: Mutex<Instant>,
-    start: Instant,
-}
-
-impl Progress {
-    fn new(total: usize, quiet: bool) -> Progress {
-        let tty = std::io::stderr().is_terminal();
-        let bar = (!quiet && tty).then(|| {
-            let b = indicatif::ProgressBar::new(total as u64);
-            b.set_style(
-                indicatif::ProgressStyle::with_template(
-                    "{spinner} shapes {pos}/{len} [{bar:40}] {elapsed_precise} eta {eta} {msg}",
-                )
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-                .progress_chars("=> "),
-            );
-            b
-        });
-        Progress {
-            bar,
-            plain: !quiet && !tty,
-            total,
-            done: AtomicUsize::new(0),
-            last: Mutex::new(Instant::now()),
-            start: Instant::now(),
-        }
-    }
-
-    fn tick(&self, id: &str) {
-        let done = self.done.fetch_add(1, Ordering::Relaxed) + 1;
-        if let Some(b) = &self.bar {
-            b.set_message(id.to_string());
-            b.inc(1);
-        } else if self.plain {
-            let mut last = self.last.lock().unwrap_or_else(|e| e.into_inner());
-            if done == self.total || last.elapsed() >= Duration::from_secs(10) {
-                *last = Instant::now();
-                eprintln!(
-                    "eval: {done}/{} shapes ({:.0} s)",
-                    self.total,
-                    self.start.elapsed().as_secs_f64()
-                );
-            }
-        }
-    }
-
-    fn finish(&self) {
-        if let Some(b) = &self.bar {
-            b.finish_and_clear();
-        }
-    }
-}
-
-/// Part of the analysis cache key besides the mesh bytes and the options: the crate version, so
-/// that a new release never reuses spectra computed by an older solver.
-pub(crate) const ANALYSIS_VERSION: &str = concat!("shapeseek ", env!("CARGO_PKG_VERSION"));
-
-/// The signatures of one shape (one per union specification), or why it failed.
-type ShapeResult = std::result::Result<Vec<Signature>, (String, String)>;
-
-#[allow(clippy::too_many_arguments)]
-fn process_shape(
-    path: &Path,
-    specs: &[SignatureSpec],
-    spec_keys: &[String],
-    opts: &AnalyzeOptions,
-    opts_json: &[u8],
-    limits: &ReadLimits,
-    cache: &Cache,
-    clock: &StageClock,
-) -> ShapeResult {
-    let fail = |e: Error| (e.code().to_string(), e.to_string());
-    let t = Instant::now();
-    let bytes = read_limited(path, limits).map_err(fail)?;
-    add(&clock.read, t.elapsed());
-    let content = hash_parts(&[&bytes]);
-    let akey = hash_parts(&[content.as_bytes(), opts_json, ANALYSIS_VERSION.as_bytes()]);
-    let mut sigs: Vec<Option<Signature>> = Vec::with_capacity(specs.len());
-    let t = Instant::now();
-    let mut index: Option<Vec<IndexEntry>> = None;
-    for (spec, sk) in specs.iter().zip(spec_keys) {
-        let mut sig = load_signature_checked(cache, &akey, sk);
-        if sig.is_none() {
-            // A cached signature of a larger specification serves as well (channels by name).
-            let idx = index.get_or_insert_with(|| load_index(cache, &akey));
-            sig = idx
-                .iter()
-                .filter(|e| &e.key != sk && covers(&e.spec, spec))
-                .find_map(|e| load_signature_checked(cache, &akey, &e.key));
-        }
-        sigs.push(sig);
-    }
-    add(&clock.cache, t.elapsed());
-    if sigs.iter().all(|s| s.is_some()) {
-        return Ok(sigs.into_iter().map(|s| s.unwrap()).collect());
-    }
-    let t = Instant::now();
-    let cached = cache.load_analysis(&akey);
-    add(&clock.cache, t.elapsed());
-    let analysis = match cached {
-        Some(a) => a,
-        None => {
-            let t = Instant::now();
-            let hint = path
-                .extension()
-                .and_then(|e| e.to_str())
-                .and_then(Format::from_extension);
-            let mesh = read_mesh(&bytes, hint, limits).map_err(fail)?;
-            add(&clock.read, t.elapsed());
-            let a = analyze(&mesh, opts).map_err(fail)?;
-            add(
-                &clock.prepare,
-                Duration::from_secs_f64(a.timings.prepare_ms * 1e-3),
-            );
-            add(
-                &clock.eigen,
-                Duration::from_secs_f64(
-                    (a.timings.laplacian_ms + a.timings.factorization_ms + a.timings.eigensolve_ms)
-                        * 1e-3,
-                ),
-            );
-            let t = Instant::now();
-            cache.store_analysis(&akey, &a);
-            add(&clock.cache, t.elapsed());
-            a
-        }
-    };
-    let mut out = Vec::with_capacity(specs.len());
-    for ((spec, sk), sig) in specs.iter().zip(spec_keys).zip(sigs) {
-        match sig {
-            Some(s) => out.push(s),
-            None => {
-                let t = Instant::now();
-                let s = compute_signature(&analysis, spec).map_err(fail)?;
-                add(&clock.signature, t.elapsed());
-                let t = Instant::now();
-                cache.store_signature(
-                    &hash_parts(&[akey.as_bytes(), sk.as_bytes()]),
-                    &s.to_bytes(),
-                );
-                if cache.dir().is_some() {
-                    let mut idx = index.take().unwrap_or_else(|| load_index(cache, &akey));
-                    if !idx.iter().any(|e| &e.key == sk) {
-                        idx.push(IndexEntry {
-                            key: sk.clone(),
-                            spec: spec.clone(),
-                        });
-                    }
-                    cache.store_index(&akey, &serde_json::to_vec(&idx).expect("index serialises"));
-                    index = Some(idx);
-                }
-                add(&clock.cache, t.elapsed());
-                out.push(s);
-            }
-        }
-    }
-    Ok(out)
-}
-
-/// One cached signature specification of an analysis.
-#[derive(serde::Serialize, serde::Deserialize)]
-struct IndexEntry {
-    key: String,
-    spec: SignatureSpec,
-}
-
-fn load_index(cache: &Cache, akey: &str) -> Vec<IndexEntry> {
-    cache
-        .load_index(akey)
-        .and_then(|b| serde_json::from_slice(&b).ok())
-        .unwrap_or_default()
-}
-
-fn load_signature_checked(cache: &Cache, akey: &str, spec_key: &str) -> Option<Signature> {
-    let key = hash_parts(&[akey.as_bytes(), spec_key.as_bytes()]);
-    cache
-        .load_signature(&key)
-        .and_then(|b| match Signature::from_bytes(&b) {
-            Ok(s) if s.spec_key == spec_key => Some(s),
-            _ => {
-                cache.note_undecodable();
-                None
-            }
-        })
-}
-
-/// Does a signature computed for `big` hold every channel of `small`, computed the same way?
-pub fn covers(big: &SignatureSpec, small: &SignatureSpec) -> bool {
-    let base = |s: &SignatureSpec| {
-        let mut b = s.clone();
-        b.channels.clear();
-        serde_json::to_value(&b).ok()
-    };
-    base(big).is_some()
-        && base(big) == base(small)
-        && small
-            .channels
-            .iter()
-            .all(|c| big.channels.iter().any(|x| x == c))
-}
-
-fn read_limited(path: &Path, limits: &ReadLimits) -> Result<Vec<u8>> {
-    let meta = std::fs::metadata(path)?;
-    if meta.len() as u128 > limits.max_bytes as u128 {
-        return Err(Error::Limit {
-            kind: crate::error::LimitKind::Bytes,
-            limit: limits.max_bytes,
-            actual: meta.len() as usize,
-        });
-    }
-    Ok(std::fs::read(path)?)
-}
-
-/// Finds a reference file for the manifest (see [`EvalArgs::reference`]).
+/// Finds a reference file for the manifest (see [`EvalOptions::reference`]).
 pub fn find_reference(manifest_path: &Path) -> Option<PathBuf> {
     let dir = manifest_path
         .parent()
@@ -590,7 +215,7 @@ pub fn find_reference(manifest_path: &Path) -> Option<PathBuf> {
 }
 
 /// Runs the evaluation and writes `--json` / `--out` files; returns everything it computed.
-pub fn evaluate(args: &EvalArgs) -> Result<EvalOutcome> {
+pub fn evaluate(args: &EvalOptions) -> Result<EvalOutcome> {
     let threads = args.jobs.unwrap_or(0);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
@@ -599,7 +224,7 @@ pub fn evaluate(args: &EvalArgs) -> Result<EvalOutcome> {
     pool.install(|| evaluate_in_pool(args))
 }
 
-fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
+fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
     let t_total = Instant::now();
     if args.k < 2 {
         return Err(Error::InvalidArgument("--k must be at least 2".into()));
@@ -623,11 +248,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
             return Err(Error::InvalidArgument("--per-class must be ≥ 1".into()));
         }
     }
-    let rerank_stages: Vec<(String, crate::rerank::RerankStage)> = args
-        .rerank
-        .iter()
-        .map(|r| crate::rerank::eval::parse_stage(r).map(|s| (r.clone(), s)))
-        .collect::<Result<_>>()?;
+    let rerank_stages = &args.rerank;
     let configs = load_configs(args.config.as_deref())?;
     let (specs, group_of) = union_specs(&configs);
     let spec_keys: Vec<String> = specs.iter().map(|s| s.key()).collect();
@@ -640,15 +261,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     let mut opts = AnalyzeOptions::default();
     opts.eigen.k = args.k;
     opts.prepare.normalize_area = !args.no_normalize;
-    opts.laplacian = match args.laplacian.as_str() {
-        "cotangent" => crate::laplace::LaplacianKind::Cotangent,
-        "intrinsic-delaunay" => crate::laplace::LaplacianKind::IntrinsicDelaunay,
-        o => {
-            return Err(Error::InvalidArgument(format!(
-                "--laplacian {o}: cotangent or intrinsic-delaunay"
-            )))
-        }
-    };
+    opts.laplacian = args.laplacian;
     let opts_json = serde_json::to_vec(&opts).expect("options serialise");
     let limits = ReadLimits::default();
     let clock = StageClock::default();
@@ -727,7 +340,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
 
     // Calibration and histograms, per union specification.
     let t_cal = Instant::now();
-    let prepared: Vec<Vec<Option<Prepared>>> = specs
+    let corpora: Vec<Corpus> = specs
         .iter()
         .enumerate()
         .map(|(g, spec)| {
@@ -744,14 +357,15 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
                     ..Default::default()
                 },
             );
-            shape_results
+            let layout = Layout::of(&cal);
+            let rows: Vec<Encoded> = shape_results
                 .par_iter()
-                .map(|r| {
-                    r.as_ref()
-                        .ok()
-                        .map(|s| ranking::prepare_for_ranking(&s[g], &cal))
+                .map(|r| match r {
+                    Ok(s) => Encoded::from_signature(&s[g], &cal, &layout),
+                    Err(_) => Encoded::absent(&layout),
                 })
-                .collect()
+                .collect();
+            Corpus::build(layout, &rows)
         })
         .collect();
     let calibration_histograms_s = t_cal.elapsed().as_secs_f64();
@@ -760,7 +374,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     let mut payload_sets: Vec<(String, Vec<Option<crate::rerank::GwPayload>>)> = Vec::new();
     let all_stages = rerank_stages
         .iter()
-        .map(|(_, st)| st)
+        .flat_map(|(_, st)| st)
         .chain(configs.iter().flat_map(|c| &c.rerank));
     for st in all_stages {
         if let Some(ps) = st.payload_spec() {
@@ -771,9 +385,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
                     let content = hash_parts(&[bytes]);
                     hash_parts(&[content.as_bytes(), &opts_json, ANALYSIS_VERSION.as_bytes()])
                 };
-                let pl = crate::rerank::eval::shape_payloads(
-                    &manifest, &included, &opts, &akey, &cache, ps,
-                );
+                let pl = rerank::shape_payloads(&manifest, &included, &opts, &akey, &cache, ps);
                 rerank_notes.push_str(&format!(
                     "- payload `{}` ({} samples, t = {:?}, {:?}, {:?}): {:.1} s for {} shapes (cached under `gw/`)\n",
                     key, ps.samples, ps.times, ps.metric, ps.time_rule, t.elapsed().as_secs_f64(), pl.iter().filter(|p| p.is_some()).count()
@@ -808,22 +420,19 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         .map(|_| ChannelMatrices::default())
         .collect();
     let (mut scoring_s, mut metrics_s) = (0.0, 0.0);
-    let mut solved_pairs = crate::rerank::eval::PairCache::new();
-    let mut direct_fallbacks = 0usize;
+    let mut solved_pairs = rerank::PairCache::new();
     let mut dumped: Vec<(String, Vec<f64>)> = Vec::new();
     for (c, cfg) in configs.iter().enumerate() {
         let g = group_of[c];
-        let prep = &prepared[g];
+        let corpus = &corpora[g];
         let t = Instant::now();
-        let dist = match channel_cache[g].aggregate(prep, &cfg.query) {
-            Some(d) => d,
-            None => {
-                direct_fallbacks += 1;
-                distance_matrix(prep, &cfg.query)
-            }
-        };
+        let dist = channel_cache[g].aggregate(corpus, &included, &cfg.query);
         scoring_s += t.elapsed().as_secs_f64();
-        // The configuration's own stages, then each `--rerank` stage on its result; every
+        let rescore = |q: usize, j: usize, spec: &QuerySpec| {
+            let l = corpus.layout();
+            Query::new(spec, l).score(l, corpus.shape(q), corpus.shape(j))
+        };
+        // The configuration's own stages, then each `--rerank` list on its result; every
         // stage's shortlist comes from the current order, a reciprocal stage's mutual
         // dissimilarities from the first stage's matrix.
         let mut cur = dist.clone();
@@ -835,6 +444,7 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
                 n,
                 &included,
                 &payload_sets,
+                &rescore,
                 &mut solved_pairs,
             );
             rerank_notes.push_str(&stage_note(&cfg.name, st, &stats, args.quiet));
@@ -851,22 +461,27 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
             eval,
             alias: alias_of(cfg),
         });
-        for (label, st) in &rerank_stages {
-            let (d2, stats) = apply_stage(
-                st,
-                &dist,
-                &cur,
-                n,
-                &included,
-                &payload_sets,
-                &mut solved_pairs,
-            );
-            let eval = metrics::evaluate(&d2, n, &classes, &transforms, &strengths, &included);
+        for (label, list) in rerank_stages {
             let name = format!("{}+{}", cfg.name, label);
+            let mut d2 = cur.clone();
+            for st in list {
+                let (next, stats) = apply_stage(
+                    st,
+                    &dist,
+                    &d2,
+                    n,
+                    &included,
+                    &payload_sets,
+                    &rescore,
+                    &mut solved_pairs,
+                );
+                rerank_notes.push_str(&stage_note(&name, st, &stats, args.quiet));
+                d2 = next;
+            }
+            let eval = metrics::evaluate(&d2, n, &classes, &transforms, &strengths, &included);
             if args.matrices.is_some() {
                 dumped.push((name.clone(), d2.clone()));
             }
-            rerank_notes.push_str(&stage_note(&name, st, &stats, args.quiet));
             results.push(ConfigResult {
                 name,
                 eval,
@@ -910,7 +525,6 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
         ranking_s,
         scoring_s,
         metrics_s,
-        direct_fallbacks,
         report_s: 0.0,
         total_s: 0.0,
         threads: rayon::current_num_threads(),
@@ -975,17 +589,19 @@ fn evaluate_in_pool(args: &EvalArgs) -> Result<EvalOutcome> {
     })
 }
 
-/// One re-ranking stage over every query row (`crate::rerank::eval::rerank_matrix`), with the
-/// run's payloads for the stage's payload spec.
+/// One re-ranking stage over every query row ([`rerank::rerank_matrix`]), with the run's
+/// payloads for the stage's payload spec.
+#[allow(clippy::too_many_arguments)]
 fn apply_stage(
-    st: &crate::rerank::RerankStage,
+    st: &Stage,
     base: &[f64],
     cur: &[f64],
     n: usize,
     included: &[bool],
     payload_sets: &[(String, Vec<Option<crate::rerank::GwPayload>>)],
-    solved_pairs: &mut crate::rerank::eval::PairCache,
-) -> (Vec<f64>, crate::rerank::eval::RerankStats) {
+    rescore: &(dyn Fn(usize, usize, &QuerySpec) -> f64 + Sync),
+    solved_pairs: &mut rerank::PairCache,
+) -> (Vec<f64>, rerank::RerankStats) {
     let none = vec![None; n];
     let payloads = st
         .payload_spec()
@@ -993,29 +609,24 @@ fn apply_stage(
         .map(|(_, p)| p)
         .filter(|p| !p.is_empty())
         .unwrap_or(&none);
-    crate::rerank::eval::rerank_matrix(base, cur, n, included, payloads, st, solved_pairs)
+    rerank::rerank_matrix(base, cur, n, included, payloads, st, rescore, solved_pairs)
 }
 
 /// The report's line about one re-ranking stage (also printed unless `quiet`).
-fn stage_note(
-    name: &str,
-    st: &crate::rerank::RerankStage,
-    stats: &crate::rerank::eval::RerankStats,
-    quiet: bool,
-) -> String {
+fn stage_note(name: &str, st: &Stage, stats: &rerank::RerankStats, quiet: bool) -> String {
     let line = match st {
-        crate::rerank::RerankStage::Reciprocal(_) => format!(
-            "`{name}` ({}): {:.1} s wall for every query; {:.2} ms per query's shortlist (one thread)",
-            st.label(),
-            stats.wall_s,
-            stats.per_query_ms
-        ),
-        _ => format!(
-            "`{name}` ({}): {} newly solved pairs in {:.1} s wall; {:.2} ms CPU per GW solve; `rerank::apply` on one query's shortlist: {:.1} ms wall",
+        Stage::SpectralGw(_) => format!(
+            "`{name}` ({}): {} newly solved pairs in {:.1} s wall; {:.2} ms CPU per GW solve; `rerank_gw` on one query's shortlist: {:.1} ms wall",
             st.label(),
             stats.pairs,
             stats.wall_s,
             stats.per_candidate_ms,
+            stats.per_query_ms
+        ),
+        _ => format!(
+            "`{name}` ({}): {:.1} s wall for every query; {:.2} ms per query's shortlist (one thread)",
+            st.label(),
+            stats.wall_s,
             stats.per_query_ms
         ),
     };
@@ -1051,359 +662,57 @@ fn per_class_subset(entries: Vec<manifest::Entry>, m: usize, seed: u64) -> Vec<m
         .collect()
 }
 
-/// `--matrices`: one JSON document with the manifest rows and, per configuration, its row-major
-/// `n × n` dissimilarity matrix (`null` on the diagonal and for rows that were not ranked).
-fn write_matrices(
-    path: &Path,
-    manifest: &Manifest,
-    included: &[bool],
-    n: usize,
-    mats: &[(String, Vec<f64>)],
-) -> Result<()> {
-    let rows: Vec<Value> = manifest
-        .entries
-        .iter()
-        .zip(included)
-        .map(|(e, &inc)| {
-            json!({"id": e.id, "class": e.class, "transform": e.transform, "strength": e.strength, "ranked": inc})
-        })
-        .collect();
-    let matrices: serde_json::Map<String, Value> = mats
-        .iter()
-        .map(|(name, d)| {
-            let m: Vec<Vec<Option<f64>>> = (0..n)
-                .map(|i| {
-                    (0..n)
-                        .map(|j| {
-                            let v = d[i * n + j];
-                            (i != j && included[i] && included[j] && v.is_finite()).then_some(v)
-                        })
-                        .collect()
-                })
-                .collect();
-            (name.clone(), json!(m))
-        })
-        .collect();
-    let doc = json!({"shapes": rows, "matrices": matrices});
-    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)?;
-    }
-    cache::write_atomic(path, serde_json::to_string(&doc).expect("json").as_bytes())?;
-    Ok(())
-}
-
-/// The name of a preset configuration that is the same method as `cfg` under another name:
-/// same query, same specifications of the queried channels, same discretisation (other channels
-/// of a shared family specification do not matter). Used for reference look-ups.
-pub fn alias_of(cfg: &Config) -> Option<String> {
-    let method = |c: &Config| {
-        let chans: Vec<Option<&crate::signature::ChannelSpec>> = c
-            .query
-            .channels
-            .iter()
-            .map(|n| c.signature.channels.iter().find(|x| &x.name() == n))
-            .collect();
-        let mut base = c.signature.clone();
-        base.channels.clear();
-        (
-            serde_json::to_value(&c.query).ok(),
-            serde_json::to_value(&chans).ok(),
-            serde_json::to_value(&base).ok(),
-            serde_json::to_value(&c.rerank).ok(),
-        )
-    };
-    let me = method(cfg);
-    ranking::paper_configs()
-        .into_iter()
-        .find(|c| c.name != cfg.name && method(c) == me)
-        .map(|c| c.name)
-}
-
-/// All-pairs per-channel dissimilarity matrices, computed once per (channel, dissimilarity) and
-/// shared by every configuration of a signature family: `Heat-L2-nL1-Single[t]`, `…-Sum`,
-/// `…-Sum2` and `…-Max` all reuse the same six matrices.
-///
-/// A configuration's matrix is then `aggregation.apply(per-channel values)` exactly as
-/// `ranking::score` combines `ranking::channel_dissimilarity`; that equivalence is checked on a
-/// sample of pairs against `ranking::score` itself, and a configuration where it does not hold
-/// bit for bit is scored pair by pair instead.
+/// All-pairs per-channel dissimilarity matrices, computed once per (channel, dissimilarity)
+/// and shared by every configuration of a signature family: `Heat-L2-nL1-Single[t]`, `…-Sum`,
+/// `…-Sum2` and `…-Max` all reuse the same six matrices. A configuration's matrix is then
+/// [`Query::aggregate`] of the channels' values, which is how [`Query::score`] is computed:
+/// the same numbers as the server's scan, by construction.
 #[derive(Default)]
 struct ChannelMatrices {
-    mats: std::collections::HashMap<(String, String), Vec<f64>>,
+    mats: HashMap<(usize, Dissimilarity), Vec<f64>>,
 }
 
 impl ChannelMatrices {
-    fn matrix(
-        &mut self,
-        prep: &[Option<Prepared>],
-        name: &str,
-        d: ranking::Dissimilarity,
-    ) -> &Vec<f64> {
-        let key = (name.to_string(), format!("{d:?}"));
-        self.mats.entry(key).or_insert_with(|| {
-            let n = prep.len();
+    fn matrix(&mut self, corpus: &Corpus, included: &[bool], c: usize, d: Dissimilarity) {
+        self.mats.entry((c, d)).or_insert_with(|| {
+            let n = corpus.len();
+            let l = corpus.layout();
             let mut m = vec![f64::NAN; n * n];
             m.par_chunks_mut(n.max(1)).enumerate().for_each(|(i, row)| {
-                if let Some(pi) = &prep[i] {
-                    let a = pi.channel(name);
+                if included[i] {
                     for (j, x) in row.iter_mut().enumerate() {
-                        if i != j {
-                            if let Some(pj) = &prep[j] {
-                                *x = ranking::channel_dissimilarity(d, a, pj.channel(name));
-                            }
+                        if i != j && included[j] {
+                            *x = channel_dissimilarity(l, d, c, corpus.shape(i), corpus.shape(j));
                         }
                     }
                 }
             });
             m
-        })
+        });
     }
 
-    /// The configuration's all-pairs matrix, or `None` when the shortcut does not reproduce
-    /// `ranking::score`.
-    fn aggregate(&mut self, prep: &[Option<Prepared>], q: &QuerySpec) -> Option<Vec<f64>> {
-        let names: Vec<String> = match q.aggregation {
-            ranking::Aggregation::Single => q.channels.iter().take(1).cloned().collect(),
-            _ => q.channels.clone(),
-        };
-        if names.is_empty() {
-            return None;
+    /// The configuration's all-pairs matrix (row = query; NaN on the diagonal and for shapes
+    /// left out).
+    fn aggregate(&mut self, corpus: &Corpus, included: &[bool], spec: &QuerySpec) -> Vec<f64> {
+        let q = Query::new(spec, corpus.layout());
+        for &c in q.channels.iter().flatten() {
+            self.matrix(corpus, included, c, q.dissimilarity);
         }
-        for nm in &names {
-            self.matrix(prep, nm, q.dissimilarity);
-        }
-        let mats: Vec<&Vec<f64>> = names
-            .iter()
-            .map(|nm| &self.mats[&(nm.clone(), format!("{:?}", q.dissimilarity))])
-            .collect();
-        let n = prep.len();
+        let mats = &self.mats;
+        let n = corpus.len();
         let mut out = vec![f64::NAN; n * n];
         out.par_chunks_mut(n.max(1))
             .enumerate()
             .for_each(|(i, row)| {
-                if prep[i].is_none() {
+                if !included[i] {
                     return;
                 }
                 for (j, x) in row.iter_mut().enumerate() {
-                    if i != j && prep[j].is_some() {
-                        *x = q.aggregation.apply(mats.iter().map(|m| m[i * n + j]));
+                    if i != j && included[j] {
+                        *x = q.aggregate(|c| mats[&(c, q.dissimilarity)][i * n + j]);
                     }
                 }
             });
-        // Check against the library's own score on a deterministic sample of pairs.
-        let ok: Vec<usize> = (0..n).filter(|&i| prep[i].is_some()).collect();
-        let m = ok.len();
-        if m >= 2 {
-            for s in 0..64usize.min(m * (m - 1)) {
-                let i = ok[(s * 7919) % m];
-                let j = ok[(s * 104_729 + 13) % m];
-                if i == j {
-                    continue;
-                }
-                let (Some(a), Some(b)) = (&prep[i], &prep[j]) else {
-                    continue;
-                };
-                let direct = ranking::score(a, b, q);
-                let ours = out[i * n + j];
-                if !(direct == ours || (direct.is_nan() && ours.is_nan())) {
-                    return None;
-                }
-            }
-        }
-        Some(out)
+        out
     }
-}
-
-/// All-pairs scores (row = query), NaN where a shape is missing; rows in parallel.
-fn distance_matrix(prep: &[Option<Prepared>], q: &QuerySpec) -> Vec<f64> {
-    let n = prep.len();
-    let mut dist = vec![f64::NAN; n * n];
-    dist.par_chunks_mut(n.max(1))
-        .enumerate()
-        .for_each(|(i, row)| {
-            if let Some(pi) = &prep[i] {
-                for (j, d) in row.iter_mut().enumerate() {
-                    if i != j {
-                        if let Some(pj) = &prep[j] {
-                            *d = ranking::score(pi, pj, q);
-                        }
-                    }
-                }
-            }
-        });
-    dist
-}
-
-fn safe_file_name(s: &str) -> String {
-    s.chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || "-_.=".contains(c) {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
-}
-
-fn write_curves(dir: &Path, results: &[ConfigResult]) -> Result<()> {
-    let curves = dir.join("curves");
-    std::fs::create_dir_all(&curves)?;
-    for r in results {
-        let base = safe_file_name(&r.name);
-        let series = |pick: &dyn Fn(&metrics::GroupSummary) -> &Vec<(f64, f64)>| -> Vec<(String, Vec<(f64, f64)>)> {
-            r.eval
-                .groups
-                .iter()
-                .filter(|(_, s)| !pick(s).is_empty())
-                .map(|(g, s)| {
-                    let lab = match (s.auc, s.map) {
-                        (Some(a), Some(m)) => format!("{} (AUC {:.1}, mAP {:.1})", report::group_label(g), 100.0 * a, 100.0 * m),
-                        _ => report::group_label(g),
-                    };
-                    (lab, pick(s).clone())
-                })
-                .collect()
-        };
-        let roc = plot::line_chart(
-            &format!("ROC — {}", r.name),
-            "false positive rate",
-            "true positive rate",
-            &series(&|s| &s.mean_roc),
-            true,
-        );
-        std::fs::write(curves.join(format!("{base}.roc.svg")), roc)?;
-        let pr = plot::line_chart(
-            &format!("Precision–recall — {}", r.name),
-            "recall",
-            "precision",
-            &series(&|s| &s.mean_pr),
-            false,
-        );
-        std::fs::write(curves.join(format!("{base}.pr.svg")), pr)?;
-    }
-    // All configurations on one chart, group All.
-    let all = |pick: &dyn Fn(&metrics::GroupSummary) -> &Vec<(f64, f64)>| -> Vec<(String, Vec<(f64, f64)>)> {
-        results
-            .iter()
-            .filter_map(|r| r.eval.group(metrics::ALL).map(|s| (r.name.clone(), pick(s).clone())))
-            .collect()
-    };
-    std::fs::write(
-        dir.join("roc-all.svg"),
-        plot::line_chart(
-            "Mean ROC, all queries",
-            "false positive rate",
-            "true positive rate",
-            &all(&|s| &s.mean_roc),
-            true,
-        ),
-    )?;
-    std::fs::write(
-        dir.join("pr-all.svg"),
-        plot::line_chart(
-            "Mean precision–recall, all queries",
-            "recall",
-            "precision",
-            &all(&|s| &s.mean_pr),
-            false,
-        ),
-    )?;
-    Ok(())
-}
-
-#[allow(clippy::too_many_arguments)]
-fn markdown_report(
-    args: &EvalArgs,
-    manifest: &Manifest,
-    results: &[ConfigResult],
-    failures: &[Failure],
-    t: &Timings,
-    cache: (u64, u64, u64, u64),
-    reference: Option<&Reference>,
-    reference_path: Option<&Path>,
-) -> String {
-    use std::fmt::Write;
-    let mut s = String::new();
-    let n = manifest.entries.len();
-    let _ = writeln!(s, "# shapeseek eval — {}\n", args.manifest.display());
-    let mut per_t = String::new();
-    for tr in manifest.transforms() {
-        let c = manifest
-            .entries
-            .iter()
-            .filter(|e| e.transform == tr)
-            .count();
-        let _ = write!(per_t, "{} {c}, ", report::group_label(&tr));
-    }
-    let _ = writeln!(
-        s,
-        "{n} shapes ({} ranked, {} left out); queries per transform: {}. k = {}. mAP, AUC and EER in %. \
-         'All w/o scale' leaves out the scale queries.\n",
-        n - failures.len(),
-        failures.len(),
-        per_t.trim_end_matches(", "),
-        args.k
-    );
-    if !failures.is_empty() {
-        let _ = writeln!(
-            s,
-            "## Left out of the ranking\n\n| id | path | code | message |\n|---|---|---|---|"
-        );
-        for f in failures {
-            let _ = writeln!(
-                s,
-                "| {} | {} | `{}` | {} |",
-                f.id,
-                f.path,
-                f.code,
-                f.message.replace('|', "\\|")
-            );
-        }
-        s.push('\n');
-    }
-    let _ = writeln!(
-        s,
-        "## All configurations\n\n{}",
-        report::summary_table(results, reference)
-    );
-    if let (Some(_), Some(p)) = (reference, reference_path) {
-        let _ = writeln!(s, "Reference figures from `{}`.\n", p.display());
-    }
-    s.push_str(&report::reference_shaped_tables(results, reference));
-    s.push_str(&report::roc_summary_table(results, reference));
-    let _ = writeln!(
-        s,
-        "## mAP per strength (%)\n\n{}",
-        report::per_strength_table(&report::per_strength_selection(results))
-    );
-    let _ = writeln!(s, "## Time per stage\n");
-    let _ = writeln!(s, "| stage | seconds |\n|---|---|");
-    for (name, v) in [
-        ("read (sum over shapes)", t.read_s),
-        ("prepare (sum)", t.prepare_s),
-        (
-            "eigen: Laplacian + factorisation + eigensolve (sum)",
-            t.eigen_s,
-        ),
-        ("signature (sum)", t.signature_s),
-        ("cache I/O (sum)", t.cache_s),
-        ("per-shape phase (wall)", t.per_shape_wall_s),
-        (
-            "calibration + histograms (wall)",
-            t.calibration_histograms_s,
-        ),
-        ("ranking + metrics, all configurations (wall)", t.ranking_s),
-        ("  of which dissimilarity matrices", t.scoring_s),
-        ("  of which AP / ROC / PR", t.metrics_s),
-        ("total (wall)", t.total_s),
-    ] {
-        let _ = writeln!(s, "| {name} | {v:.2} |");
-    }
-    let _ = writeln!(
-        s,
-        "\n{} worker threads; cache: {} hits, {} misses, {} corrupt (recomputed), {} write errors.",
-        t.threads, cache.0, cache.1, cache.2, cache.3
-    );
-    s
 }

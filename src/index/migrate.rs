@@ -35,7 +35,6 @@ pub const STEPS: &[Step] = &[Step {
 /// left without a payload (a spectral-GW stage ranks it after the scored ones) and reported
 /// on stderr.
 fn add_payloads(db: &sled::Db) -> Result<()> {
-    use crate::index::Engine;
     use crate::mesh::read::{read_mesh, Format, ReadLimits};
     use crate::rerank::{compute_payload, PayloadSpec};
     let shapes = db.open_tree("shapes").map_err(storage_err)?;

@@ -1,45 +1,168 @@
-//! The in-memory scan structure: every stored signature prepared under the current
-//! calibration, as parallel arrays sorted by id (= ingest order), with the engine's scan table
-//! (for the framework: `topk::BoundTable`, contiguous group sums giving lower bounds), ranked
-//! by the engine's `top_k` — exactly the head of the framework's full ranking (sorted by score,
-//! ties by position: the same scores and tie rule as the evaluation harness).
+//! The in-memory scan structure: every stored shape under the current calibration, sorted by id
+//! (= ingest order), as one [`Corpus`] plus compact arenas of ids, names and tags. Ranked by
+//! [`crate::search::top_k`]: exactly the head of the full ranking (sorted by score, ties by
+//! position), the scores and tie rule of the evaluation harness.
 //!
 //! It is loaded from the store at start and kept in step with every insert and delete by the
-//! server (under a write lock held only for the update). Recalibration builds the new prepared
-//! array outside the lock and swaps it in; only the engine's table is rebuilt under the lock
-//! (one pass over the prepared histograms), so searches wait for that pass at most.
+//! server (under a write lock held only for the update). Signatures are not kept: recalibration
+//! reads them from the store, builds the new corpus outside the lock and swaps it in
+//! ([`ScanIndex::install_calibration`]); only shapes added since its snapshot are encoded under
+//! the lock.
 
-use super::engine::{Engine, ScanTable};
-use rayon::prelude::*;
+use super::engine::Engine;
+use crate::ranking::Calibration;
+use crate::search::corpus::{Corpus, Encoded, Layout};
+use crate::search::{top_k, Query};
+use crate::signature::Signature;
 use std::collections::HashMap;
 use std::sync::Arc;
 
 /// A shape to index: (id, name, tags, signature).
-pub type ShapeRow<E> = (String, String, Vec<String>, Arc<<E as Engine>::Signature>);
+pub type ShapeRow = (String, String, Vec<String>, Signature);
 
-/// Shapes in id order with their prepared signatures (struct of arrays).
-pub struct ScanIndex<E: Engine> {
-    calibration: Option<Arc<E::Calibration>>,
-    calibrated_on: usize,
-    ids: Vec<String>,
-    names: Vec<String>,
-    tags: Vec<Vec<String>>,
-    signatures: Vec<Arc<E::Signature>>,
-    prepared: Vec<E::Prepared>,
-    table: E::Table,
+/// Strings in one buffer, addressed by position.
+#[derive(Clone, Debug, Default)]
+struct Strings {
+    buf: String,
+    ends: Vec<u32>,
 }
 
-impl<E: Engine> Default for ScanIndex<E> {
+impl Strings {
+    fn len(&self) -> usize {
+        self.ends.len()
+    }
+    fn range(&self, i: usize) -> std::ops::Range<usize> {
+        let start = if i == 0 { 0 } else { self.ends[i - 1] as usize };
+        start..self.ends[i] as usize
+    }
+    fn get(&self, i: usize) -> &str {
+        &self.buf[self.range(i)]
+    }
+    fn insert(&mut self, i: usize, s: &str) {
+        let at = if i == 0 { 0 } else { self.ends[i - 1] as usize };
+        self.buf.insert_str(at, s);
+        let n = s.len() as u32;
+        self.ends.insert(i, at as u32 + n);
+        self.ends[i + 1..].iter_mut().for_each(|e| *e += n);
+    }
+    fn remove(&mut self, i: usize) {
+        let r = self.range(i);
+        let n = r.len() as u32;
+        self.buf.replace_range(r, "");
+        self.ends.remove(i);
+        self.ends[i..].iter_mut().for_each(|e| *e -= n);
+    }
+    fn set(&mut self, i: usize, s: &str) {
+        self.remove(i);
+        self.insert(i, s);
+    }
+    fn search(&self, s: &str) -> Result<usize, usize> {
+        let (mut lo, mut hi) = (0, self.len());
+        while lo < hi {
+            let mid = (lo + hi) / 2;
+            match self.get(mid).cmp(s) {
+                std::cmp::Ordering::Less => lo = mid + 1,
+                std::cmp::Ordering::Greater => hi = mid,
+                std::cmp::Ordering::Equal => return Ok(mid),
+            }
+        }
+        Err(lo)
+    }
+    fn bytes(&self) -> usize {
+        self.buf.capacity() + 4 * self.ends.capacity()
+    }
+}
+
+/// Per shape a set of tags, as indices into a dictionary of distinct tags.
+#[derive(Clone, Debug, Default)]
+struct TagSets {
+    dict: Vec<String>,
+    lookup: HashMap<String, u32>,
+    ids: Vec<u32>,
+    ends: Vec<u32>,
+}
+
+impl TagSets {
+    fn range(&self, i: usize) -> std::ops::Range<usize> {
+        let start = if i == 0 { 0 } else { self.ends[i - 1] as usize };
+        start..self.ends[i] as usize
+    }
+    fn intern(&mut self, t: &str) -> u32 {
+        if let Some(&k) = self.lookup.get(t) {
+            return k;
+        }
+        self.dict.push(t.to_string());
+        let k = (self.dict.len() - 1) as u32;
+        self.lookup.insert(t.to_string(), k);
+        k
+    }
+    fn insert(&mut self, i: usize, tags: &[String]) {
+        let ks: Vec<u32> = tags.iter().map(|t| self.intern(t)).collect();
+        let at = if i == 0 { 0 } else { self.ends[i - 1] as usize };
+        self.ids.splice(at..at, ks.iter().copied());
+        let n = ks.len() as u32;
+        self.ends.insert(i, at as u32 + n);
+        self.ends[i + 1..].iter_mut().for_each(|e| *e += n);
+    }
+    fn remove(&mut self, i: usize) {
+        let r = self.range(i);
+        let n = r.len() as u32;
+        self.ids.drain(r);
+        self.ends.remove(i);
+        self.ends[i..].iter_mut().for_each(|e| *e -= n);
+    }
+    fn set(&mut self, i: usize, tags: &[String]) {
+        self.remove(i);
+        self.insert(i, tags);
+    }
+    fn get(&self, i: usize) -> impl Iterator<Item = &str> {
+        self.ids[self.range(i)]
+            .iter()
+            .map(|&k| self.dict[k as usize].as_str())
+    }
+    fn bytes(&self) -> usize {
+        4 * (self.ids.capacity() + self.ends.capacity())
+            + self.dict.iter().map(|t| 2 * t.len() + 64).sum::<usize>()
+    }
+}
+
+/// A tag filter resolved against an index (see [`ScanIndex::tag_filter`]).
+#[derive(Clone, Debug)]
+pub enum TagFilter {
+    /// Shapes having all of these tags.
+    All(Vec<u32>),
+    /// A tag no shape has: nothing matches.
+    Nothing,
+}
+
+/// Shapes in id order with their encoded channels.
+pub struct ScanIndex {
+    calibration: Option<Arc<Calibration>>,
+    calibrated_on: usize,
+    ids: Strings,
+    names: Strings,
+    tags: TagSets,
+    corpus: Corpus,
+}
+
+impl Default for ScanIndex {
     fn default() -> Self {
         Self {
             calibration: None,
             calibrated_on: 0,
-            ids: Vec::new(),
-            names: Vec::new(),
-            tags: Vec::new(),
-            signatures: Vec::new(),
-            prepared: Vec::new(),
-            table: E::Table::build(&[]),
+            ids: Strings::default(),
+            names: Strings::default(),
+            tags: TagSets::default(),
+            corpus: Corpus::new(Layout::of(&Calibration {
+                epoch: 0,
+                spec_key: String::new(),
+                channel_names: Vec::new(),
+                window_max: Vec::new(),
+                bins: 1,
+                bandwidth_bins: 1.0,
+                percentile: 0.95,
+                shapes: 0,
+            })),
         }
     }
 }
@@ -53,9 +176,9 @@ pub struct Scored {
     pub score: f64,
 }
 
-impl<E: Engine> ScanIndex<E> {
+impl ScanIndex {
     /// The current calibration (None only while the index has never held a shape).
-    pub fn calibration(&self) -> Option<&Arc<E::Calibration>> {
+    pub fn calibration(&self) -> Option<&Arc<Calibration>> {
         self.calibration.as_ref()
     }
 
@@ -71,103 +194,148 @@ impl<E: Engine> ScanIndex<E> {
 
     /// True when empty.
     pub fn is_empty(&self) -> bool {
-        self.ids.is_empty()
+        self.ids.len() == 0
     }
 
     /// Position of an id.
     pub fn position(&self, id: &str) -> Option<usize> {
-        self.ids.binary_search_by(|x| x.as_str().cmp(id)).ok()
+        self.ids.search(id).ok()
     }
 
     /// Id at a position.
     pub fn id(&self, at: usize) -> &str {
-        &self.ids[at]
+        self.ids.get(at)
     }
 
     /// Name at a position.
     pub fn name(&self, at: usize) -> &str {
-        &self.names[at]
+        self.names.get(at)
     }
 
     /// Tags at a position.
-    pub fn tags(&self, at: usize) -> &[String] {
-        &self.tags[at]
+    pub fn tags(&self, at: usize) -> Vec<&str> {
+        self.tags.get(at).collect()
     }
 
-    /// Signature at a position.
-    pub fn signature(&self, at: usize) -> &Arc<E::Signature> {
-        &self.signatures[at]
+    /// Resolves the tags every hit must have.
+    pub fn tag_filter(&self, tags: &[String]) -> TagFilter {
+        let mut ks = Vec::with_capacity(tags.len());
+        for t in tags {
+            match self.tags.lookup.get(t) {
+                Some(&k) => ks.push(k),
+                None => return TagFilter::Nothing,
+            }
+        }
+        TagFilter::All(ks)
     }
 
-    /// The prepared signatures, contiguous, in id order.
-    pub fn prepared(&self) -> &[E::Prepared] {
-        &self.prepared
+    /// True when the shape at `at` passes `filter`.
+    pub fn has_tags(&self, at: usize, filter: &TagFilter) -> bool {
+        match filter {
+            TagFilter::Nothing => false,
+            TagFilter::All(ks) => {
+                let have = &self.tags.ids[self.tags.range(at)];
+                ks.iter().all(|k| have.contains(k))
+            }
+        }
+    }
+
+    /// The encoded shapes, in id order.
+    pub fn corpus(&self) -> &Corpus {
+        &self.corpus
+    }
+
+    /// The ids, in order.
+    pub fn ids(&self) -> Vec<String> {
+        (0..self.len()).map(|i| self.id(i).to_string()).collect()
+    }
+
+    /// Heap bytes held by the index (corpus and arenas).
+    pub fn heap_bytes(&self) -> usize {
+        self.corpus.heap_bytes() + self.ids.bytes() + self.names.bytes() + self.tags.bytes()
     }
 
     /// Builds the index from stored shapes under `cal`.
-    pub fn build(
-        engine: &E,
-        cal: Arc<E::Calibration>,
-        calibrated_on: usize,
-        mut shapes: Vec<ShapeRow<E>>,
-    ) -> Self {
+    pub fn build(cal: Arc<Calibration>, calibrated_on: usize, mut shapes: Vec<ShapeRow>) -> Self {
+        use rayon::prelude::*;
         shapes.sort_by(|a, b| a.0.cmp(&b.0));
-        let prepared: Vec<E::Prepared> = shapes
+        let layout = Layout::of(&cal);
+        let encoded: Vec<Encoded> = shapes
             .par_iter()
-            .map(|(_, _, _, s)| engine.prepare(s, &cal))
+            .map(|(_, _, _, s)| Encoded::from_signature(s, &cal, &layout))
             .collect();
         let mut idx = Self {
+            corpus: Corpus::build(layout, &encoded),
             calibration: Some(cal),
             calibrated_on,
-            table: E::Table::build(&prepared),
-            prepared,
             ..Self::default()
         };
-        for (id, name, tags, signature) in shapes {
-            idx.ids.push(id);
-            idx.names.push(name);
-            idx.tags.push(tags);
-            idx.signatures.push(signature);
+        for (i, (id, name, tags, _)) in shapes.iter().enumerate() {
+            idx.ids.insert(i, id);
+            idx.names.insert(i, name);
+            idx.tags.insert(i, tags);
         }
         idx
     }
 
-    /// Adds (or replaces) a shape, prepared under the current calibration; a first shape is
+    /// An empty index under `cal` with room for `n` shapes (filled by
+    /// [`ScanIndex::push_encoded`]).
+    pub fn with_capacity(cal: Arc<Calibration>, calibrated_on: usize, n: usize) -> Self {
+        Self {
+            corpus: Corpus::with_capacity(Layout::of(&cal), n),
+            calibration: Some(cal),
+            calibrated_on,
+            ..Self::default()
+        }
+    }
+
+    /// Appends a shape already encoded under the index's calibration; its id must sort after
+    /// every id held (bulk loading in id order).
+    pub fn push_encoded(&mut self, id: &str, name: &str, tags: &[String], e: &Encoded) {
+        let at = self.len();
+        assert!(
+            at == 0 || self.id(at - 1) < id,
+            "push_encoded: ids must increase"
+        );
+        self.ids.insert(at, id);
+        self.names.insert(at, name);
+        self.tags.insert(at, tags);
+        self.corpus.push(e);
+    }
+
+    /// Adds (or replaces) a shape, encoded under the current calibration; a first shape is
     /// calibrated on itself (epoch `first_epoch`).
     pub fn insert(
         &mut self,
-        engine: &E,
-        id: String,
-        name: String,
-        tags: Vec<String>,
-        signature: Arc<E::Signature>,
+        engine: &Engine,
+        id: &str,
+        name: &str,
+        tags: &[String],
+        signature: &Signature,
         first_epoch: u64,
     ) {
         let cal = match &self.calibration {
             Some(c) => c.clone(),
             None => {
-                let c = Arc::new(engine.calibrate(&[&*signature], first_epoch));
+                let c = Arc::new(engine.calibrate(&[signature], first_epoch));
+                self.corpus = Corpus::new(Layout::of(&c));
                 self.calibration = Some(c.clone());
                 self.calibrated_on = 1;
                 c
             }
         };
-        let prepared = engine.prepare(&signature, &cal);
-        match self.ids.binary_search(&id) {
+        let e = Encoded::from_signature(signature, &cal, self.corpus.layout());
+        match self.ids.search(id) {
             Ok(at) => {
-                self.names[at] = name;
-                self.tags[at] = tags;
-                self.signatures[at] = signature;
-                self.table.replace(at, &prepared);
-                self.prepared[at] = prepared;
+                self.names.set(at, name);
+                self.tags.set(at, tags);
+                self.corpus.replace(at, &e);
             }
             Err(at) => {
                 self.ids.insert(at, id);
                 self.names.insert(at, name);
                 self.tags.insert(at, tags);
-                self.signatures.insert(at, signature);
-                self.table.insert(at, &prepared);
-                self.prepared.insert(at, prepared);
+                self.corpus.insert(at, &e);
             }
         }
     }
@@ -180,66 +348,66 @@ impl<E: Engine> ScanIndex<E> {
         self.ids.remove(at);
         self.names.remove(at);
         self.tags.remove(at);
-        self.signatures.remove(at);
-        self.prepared.remove(at);
-        self.table.remove(at);
+        self.corpus.remove(at);
         true
     }
 
     /// True when the size moved by more than `fraction` since the last calibration.
     pub fn needs_recalibration(&self, fraction: f64) -> bool {
-        if self.ids.is_empty() {
+        if self.is_empty() {
             return false;
         }
-        let n = self.ids.len() as f64;
+        let n = self.len() as f64;
         let c = self.calibrated_on as f64;
         self.calibration.is_none() || (n - c).abs() > fraction * c.max(1.0)
     }
 
-    /// A snapshot of (id, signature) for recalibration outside the lock.
-    pub fn snapshot(&self) -> Vec<(String, Arc<E::Signature>)> {
-        self.ids
-            .iter()
-            .cloned()
-            .zip(self.signatures.iter().cloned())
-            .collect()
-    }
-
-    /// Installs a calibration and prepared signatures computed on a snapshot; shapes added
-    /// since the snapshot are prepared here, shapes deleted since are ignored.
+    /// Installs a calibration and the corpus built under it for the shapes `snapshot` (sorted
+    /// ids, in `corpus` order). When the index still holds exactly those shapes the corpus is
+    /// swapped in; otherwise shapes deleted since are left out and shapes added since are
+    /// encoded by `encode` (under the new calibration).
     pub fn install_calibration(
         &mut self,
-        engine: &E,
-        cal: Arc<E::Calibration>,
+        cal: Arc<Calibration>,
         calibrated_on: usize,
-        mut prepared: HashMap<String, E::Prepared>,
+        snapshot: &[String],
+        corpus: Corpus,
+        encode: &mut dyn FnMut(&str, &Calibration, &Layout) -> Encoded,
     ) {
-        for (at, id) in self.ids.iter().enumerate() {
-            self.prepared[at] = match prepared.remove(id) {
-                Some(p) => p,
-                None => engine.prepare(&self.signatures[at], &cal),
-            };
-        }
-        self.table = E::Table::build(&self.prepared);
+        let same = snapshot.len() == self.len()
+            && snapshot.iter().enumerate().all(|(i, s)| s == self.id(i));
+        self.corpus = if same {
+            corpus
+        } else {
+            let layout = corpus.layout().clone();
+            let mut c = Corpus::with_capacity(layout.clone(), self.len());
+            for i in 0..self.len() {
+                let id = self.id(i);
+                match snapshot.binary_search_by(|s| s.as_str().cmp(id)) {
+                    Ok(j) => c.push(&corpus.encoded(j)),
+                    Err(_) => c.push(&encode(id, &cal, &layout)),
+                }
+            }
+            c
+        };
         self.calibration = Some(cal);
         self.calibrated_on = calibrated_on;
     }
 
-    /// The `k` best shapes for `query` under `spec` among positions passing `keep`, best
-    /// first: the head of the engine's full ranking, filtered.
+    /// The `k` best shapes for `query` under `q` among positions passing `keep`, best first:
+    /// the head of the full ranking, filtered.
     pub fn rank(
         &self,
-        engine: &E,
-        query: &E::Prepared,
-        spec: &E::Query,
+        query: &Encoded,
+        q: &Query,
         k: usize,
         keep: &(dyn Fn(usize) -> bool + Sync),
     ) -> Vec<Scored> {
-        if k == 0 || self.ids.is_empty() {
+        if k == 0 || self.is_empty() {
             return Vec::new();
         }
-        engine
-            .top_k(query, &self.prepared, &self.table, spec, k, keep)
+        top_k(&self.corpus, q, query.view(), k, keep)
+            .0
             .into_iter()
             .map(|(at, score)| Scored { at, score })
             .collect()

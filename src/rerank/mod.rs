@@ -10,7 +10,8 @@
 //!   ([`GwPayload`], computed once per shape and stored with the signature).
 //! * [`gw`]: entropic Gromov–Wasserstein with the square loss (Peyré–Cuturi–Solomon 2016,
 //!   decomposition trick with faer GEMM, stabilised Sinkhorn inner loop, product-measure init).
-//! * [`RerankStage`] + [`apply`]: what the server's search and `shapeseek eval --rerank` call.
+//! * [`SgwStage`] + [`rerank_gw`]: the stage's options and its re-ordering of one shortlist
+//!   (the stage type the search pipeline runs is [`crate::search::Stage`]).
 //! * [`reciprocal`]: a second kind of stage, k-reciprocal neighbourhood re-ranking of a shortlist
 //!   from the first stage's own dissimilarities between the candidates (no payload).
 //!
@@ -18,7 +19,6 @@
 //! payload that compares lower first), so `score(a, b) == score(b, a)` bit for bit and a
 //! shortlist's order never depends on which shape is the query.
 
-pub mod eval;
 pub mod gw;
 pub mod payload;
 pub mod reciprocal;
@@ -72,70 +72,6 @@ impl Default for SgwStage {
             payload: PayloadSpec::default(),
             gw: GwOptions::default(),
             fusion: Fusion::Replace,
-        }
-    }
-}
-
-/// A re-ranking stage (serialisable; part of a search request or an eval run).
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Default)]
-#[serde(rename_all = "snake_case", tag = "kind")]
-pub enum RerankStage {
-    /// Keep the first-stage order.
-    #[default]
-    None,
-    /// Spectral Gromov–Wasserstein re-ranking ([`SgwStage`]).
-    SpectralGw(SgwStage),
-    /// Reciprocal-neighbourhood re-ranking ([`ReciprocalStage`], [`reciprocal`]).
-    Reciprocal(ReciprocalStage),
-}
-
-impl RerankStage {
-    /// How many first-stage results the caller should pass to [`apply`] (0 for `None`).
-    pub fn shortlist_len(&self) -> usize {
-        match self {
-            RerankStage::None => 0,
-            RerankStage::SpectralGw(s) => s.shortlist,
-            RerankStage::Reciprocal(s) => s.shortlist,
-        }
-    }
-
-    /// The payload every indexed shape needs (`None` when the stage needs none).
-    pub fn payload_spec(&self) -> Option<&PayloadSpec> {
-        match self {
-            RerankStage::None | RerankStage::Reciprocal(_) => None,
-            RerankStage::SpectralGw(s) => Some(&s.payload),
-        }
-    }
-
-    /// Why the stage cannot run, if it cannot (the spectral-GW stage's options are bounded by
-    /// the server's API; here only the reciprocal stage's are checked).
-    pub fn validate(&self) -> Result<(), String> {
-        match self {
-            RerankStage::Reciprocal(r) => r.validate(),
-            RerankStage::None | RerankStage::SpectralGw(_) => Ok(()),
-        }
-    }
-
-    /// Short label, e.g. `sgw:50`.
-    pub fn label(&self) -> String {
-        match self {
-            RerankStage::None => "none".into(),
-            RerankStage::SpectralGw(s) => format!("sgw:{}", s.shortlist),
-            RerankStage::Reciprocal(s) => {
-                let d = ReciprocalStage::default();
-                let mut l = format!("recip:{}", s.shortlist);
-                if s.neighbourhoods != d.neighbourhoods {
-                    let ks: Vec<String> = s.neighbourhoods.iter().map(|k| k.to_string()).collect();
-                    l.push_str(&format!(":k={}", ks.join(",")));
-                }
-                if s.expansion != d.expansion {
-                    l.push_str(&format!(":expand={}", s.expansion));
-                }
-                if s.original_weight != d.original_weight {
-                    l.push_str(&format!(":lambda={}", s.original_weight));
-                }
-                l
-            }
         }
     }
 }
@@ -202,39 +138,24 @@ pub fn gw_score(a: &GwPayload, b: &GwPayload, opts: &GwOptions) -> f64 {
     entropic_gw(&rx, &x.weights, &ry, &y.weights, opts).value
 }
 
-/// Re-ranks `shortlist` (given in first-stage order) for `query`: returns `(id, score)` best
-/// first. For [`RerankStage::None`] the input order and scores are returned. For
-/// [`RerankStage::SpectralGw`] every entry is scored (the caller passes the top
-/// [`RerankStage::shortlist_len`]); the score is the GW energy ([`Fusion::Replace`]) or the
-/// blended rank ([`Fusion::RankBlend`]); ties keep the first-stage order. Candidates are scored
-/// in parallel (rayon); each GW solve is sequential, so results do not depend on the thread count.
-///
-/// # Panics
-///
-/// For [`RerankStage::Reciprocal`], which needs the candidates' mutual dissimilarities rather
-/// than payloads: call [`reciprocal::rerank`] instead.
-pub fn apply<I: Clone + Send + Sync>(
-    stage: &RerankStage,
+/// Re-ranks `shortlist` (given in first-stage order) for `query` by spectral GW: returns
+/// `(id, score)` best first. Every entry is scored (the caller passes the stage's top
+/// `shortlist`); the score is the GW energy ([`Fusion::Replace`]) or the blended rank
+/// ([`Fusion::RankBlend`]); ties keep the first-stage order. Candidates are scored in parallel
+/// (rayon); each GW solve is sequential, so results do not depend on the thread count.
+pub fn rerank_gw<I: Clone + Send + Sync>(
+    stage: &SgwStage,
     query: &GwPayload,
     shortlist: &[Candidate<'_, I>],
 ) -> Vec<(I, f64)> {
-    let s = match stage {
-        RerankStage::None => {
-            return shortlist.iter().map(|c| (c.id.clone(), c.score)).collect();
-        }
-        RerankStage::SpectralGw(s) => s,
-        RerankStage::Reciprocal(_) => {
-            panic!("rerank::apply: a reciprocal stage needs rerank::reciprocal::rerank")
-        }
-    };
     let gw: Vec<f64> = shortlist
         .par_iter()
         .map(|c| match c.payload {
-            Some(p) => gw_score(query, p, &s.gw),
+            Some(p) => gw_score(query, p, &stage.gw),
             None => f64::INFINITY,
         })
         .collect();
-    fuse(&gw, s.fusion)
+    fuse(&gw, stage.fusion)
         .into_iter()
         .map(|(i, sc)| (shortlist[i].id.clone(), sc))
         .collect()

@@ -179,53 +179,22 @@ fn payload_round_trip_and_malformed_input() {
     let m = p.matrix(1);
     assert_eq!(m[(3, 7)], m[(7, 3)]);
     assert_eq!(m[(5, 5)], p.diagonal[1][5] as f64);
-    // Stage (de)serialisation.
-    let st = RerankStage::SpectralGw(SgwStage::default());
+    // Stage (de)serialisation in the configuration form; invalid values are refused.
+    use crate::search::Stage;
+    let st = Stage::SpectralGw(SgwStage::default());
     let j = serde_json::to_string(&st).unwrap();
-    assert_eq!(serde_json::from_str::<RerankStage>(&j).unwrap(), st);
-    assert_eq!(eval::parse_stage("sgw:20").unwrap(), st);
-    match eval::parse_stage("sgw:50:m=150:t=0.04:eps=0.01:blend=0.5").unwrap() {
-        RerankStage::SpectralGw(s) => {
-            assert_eq!(
-                (s.shortlist, s.payload.samples, s.payload.times.clone()),
-                (50, 150, vec![0.04])
-            );
-            assert_eq!(
-                (s.gw.eps_rel, s.fusion),
-                (0.01, Fusion::RankBlend { weight: 0.5 })
-            );
-        }
-        other => panic!("{other:?}"),
-    }
-    assert!(eval::parse_stage("sgw:x").is_err());
-    // Reciprocal stage: short form, label and JSON agree; invalid values are refused in every form.
-    let r = eval::parse_stage("recip:100:k=4,8:expand=2:lambda=0.2").unwrap();
-    assert_eq!(
-        r,
-        RerankStage::Reciprocal(ReciprocalStage {
-            shortlist: 100,
-            neighbourhoods: vec![4, 8],
-            expansion: 2,
-            original_weight: 0.2,
-        })
-    );
-    assert_eq!(r.label(), "recip:100:k=4,8:expand=2:lambda=0.2");
-    assert_eq!(eval::parse_stage(&r.label()).unwrap(), r);
-    let d = RerankStage::Reciprocal(ReciprocalStage::default());
+    assert_eq!(serde_json::from_str::<Stage>(&j).unwrap(), st);
+    let d = Stage::Reciprocal(ReciprocalStage::default());
     assert_eq!(d.label(), "recip:200");
-    assert_eq!(
-        eval::parse_stage(&serde_json::to_string(&d).unwrap()).unwrap(),
-        d
-    );
+    let j = serde_json::to_string(&d).unwrap();
+    assert_eq!(serde_json::from_str::<Stage>(&j).unwrap(), d);
     for bad in [
-        "recip:0",
-        "recip:100:k=",
-        "recip:100:k=0",
-        "recip:100:lambda=2",
-        "recip:100:q=1",
         r#"{"kind":"reciprocal","shortlist":100,"neighbourhoods":[],"expansion":4,"original_weight":0.1}"#,
+        r#"{"kind":"reciprocal","shortlist":0,"neighbourhoods":[8],"expansion":4,"original_weight":0.1}"#,
+        r#"{"kind":"reciprocal","shortlist":10,"neighbourhoods":[8],"expansion":4,"original_weight":2.0}"#,
+        r#"{"kind":"none"}"#,
     ] {
-        assert!(eval::parse_stage(bad).is_err(), "{bad}");
+        assert!(serde_json::from_str::<Stage>(bad).is_err(), "{bad}");
     }
 }
 
@@ -259,31 +228,25 @@ fn rerank_reorders_a_shortlist_deterministically() {
             payload: Some(&near),
         },
     ];
-    let stage = RerankStage::SpectralGw(SgwStage {
+    let stage = SgwStage {
         shortlist: 4,
         payload: spec,
         ..SgwStage::default()
-    });
-    let a = apply(&stage, &q, &cands);
-    let b = apply(&stage, &q, &cands);
+    };
+    let a = rerank_gw(&stage, &q, &cands);
+    let b = rerank_gw(&stage, &q, &cands);
     assert_eq!(a, b);
     assert_eq!(a[0].0, "torus");
     assert_eq!(a.last().unwrap().0, "none");
     assert!(a.windows(2).all(|w| w[0].1 <= w[1].1));
-    // `None` keeps the first-stage order and scores.
-    let keep = apply(&RerankStage::None, &q, &cands);
-    assert_eq!(
-        keep.iter().map(|x| x.0).collect::<Vec<_>>(),
-        ["sphere", "plate", "none", "torus"]
-    );
     // Rank blend with weight 1 is the first-stage order.
-    let blend = RerankStage::SpectralGw(SgwStage {
+    let blend = SgwStage {
         shortlist: 4,
         payload: small_spec(),
         fusion: Fusion::RankBlend { weight: 1.0 },
         ..SgwStage::default()
-    });
-    let c = apply(&blend, &q, &cands);
+    };
+    let c = rerank_gw(&blend, &q, &cands);
     assert_eq!(
         c.iter().map(|x| x.0).collect::<Vec<_>>(),
         ["sphere", "plate", "torus", "none"]
@@ -337,12 +300,14 @@ fn gw_diagnostics() {
     }
 }
 
-/// Latency of one search of a 10 000-shape index: first-stage scan (`ranking::rank`, default
+/// Latency of one search of a 10 000-shape index: first-stage scan (`search::rank_all`, default
 /// configuration) + SGW re-ranking of the top 50 (`--ignored --nocapture`).
 #[test]
 #[ignore]
 fn search_latency_10k_with_rerank() {
-    use crate::ranking::{calibrate, default_config, prepare_for_ranking, rank};
+    use crate::presets::default_config;
+    use crate::ranking::calibrate;
+    use crate::search::{rank_all, Corpus, Encoded, Layout, Query};
     use crate::signature::compute_signature;
     let cfg = default_config();
     let mut opts = AnalyzeOptions::default();
@@ -362,27 +327,29 @@ fn search_latency_10k_with_rerank() {
         pays.push(compute_payload(&a, &spec).unwrap());
     }
     let cal = calibrate(&sigs.iter().collect::<Vec<_>>(), &cfg.signature, 1);
-    let prepared: Vec<_> = (0..10_000)
-        .map(|i| prepare_for_ranking(&sigs[i % 4], &cal))
+    let layout = Layout::of(&cal);
+    let rows: Vec<Encoded> = (0..10_000)
+        .map(|i| Encoded::from_signature(&sigs[i % 4], &cal, &layout))
         .collect();
-    let stage = RerankStage::SpectralGw(SgwStage {
-        shortlist: 50,
-        ..SgwStage::default()
-    });
+    let corpus = Corpus::build(layout, &rows);
+    let query = Query::new(&cfg.query, corpus.layout());
     let stage = if std::env::var("SGW_K20").is_ok() {
-        RerankStage::SpectralGw(SgwStage::default())
+        SgwStage::default()
     } else {
-        stage
+        SgwStage {
+            shortlist: 50,
+            ..SgwStage::default()
+        }
     };
     let mut scan = Vec::new();
     let mut rr = Vec::new();
     for q in 0..5 {
         let t = std::time::Instant::now();
-        let hits = rank(&prepared[q], &prepared, &cfg.query);
+        let hits = rank_all(&corpus, &query, corpus.shape(q));
         scan.push(t.elapsed().as_secs_f64() * 1e3);
         let cands: Vec<Candidate<'_, usize>> = hits
             .iter()
-            .take(stage.shortlist_len())
+            .take(stage.shortlist)
             .map(|&(i, s)| Candidate {
                 id: i,
                 score: s,
@@ -390,14 +357,14 @@ fn search_latency_10k_with_rerank() {
             })
             .collect();
         let t = std::time::Instant::now();
-        let out = apply(&stage, &pays[q % 4], &cands);
+        let out = rerank_gw(&stage, &pays[q % 4], &cands);
         rr.push(t.elapsed().as_secs_f64() * 1e3);
-        assert_eq!(out.len(), stage.shortlist_len());
+        assert_eq!(out.len(), stage.shortlist);
     }
     scan.sort_by(f64::total_cmp);
     rr.sort_by(f64::total_cmp);
     println!(
         "10k scan: median {:.1} ms (min {:.1}); rerank top {} (m = {}, t = {:?}): median {:.0} ms (min {:.0}); threads {}",
-        scan[2], scan[0], stage.shortlist_len(), spec.samples, spec.times, rr[2], rr[0], rayon::current_num_threads()
+        scan[2], scan[0], stage.shortlist, spec.samples, spec.times, rr[2], rr[0], rayon::current_num_threads()
     );
 }

@@ -2,7 +2,6 @@
 
 use super::problem::ApiError;
 use super::state::{validate_tags, App, SearchOptions, Upload};
-use crate::index::Engine;
 use crate::mesh::read::Format;
 use axum::body::Bytes;
 use axum::extract::{FromRequest, Multipart, Path, Query, Request, State};
@@ -13,7 +12,7 @@ use serde::Deserialize;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
-type AppState<E> = State<Arc<App<E>>>;
+type AppState = State<Arc<App>>;
 
 /// Query parameters of a raw `POST /v1/shapes`.
 #[derive(Debug, Default, Deserialize)]
@@ -97,8 +96,8 @@ fn check_name(name: &Option<String>) -> Result<(), ApiError> {
     Ok(())
 }
 
-async fn read_raw<E: Engine>(
-    app: &Arc<App<E>>,
+async fn read_raw(
+    app: &Arc<App>,
     req: Request,
     hint: Option<Format>,
 ) -> Result<(Bytes, Option<Format>), ApiError> {
@@ -121,8 +120,8 @@ async fn read_raw<E: Engine>(
 }
 
 /// Reads a multipart body: the `file` part and the named JSON part.
-async fn read_multipart<E: Engine>(
-    app: &Arc<App<E>>,
+async fn read_multipart(
+    app: &Arc<App>,
     req: Request,
     json_part: &str,
 ) -> Result<(Bytes, Option<Format>, Option<Bytes>), ApiError> {
@@ -177,8 +176,8 @@ async fn read_multipart<E: Engine>(
 }
 
 /// `POST /v1/shapes`.
-pub async fn ingest<E: Engine>(
-    State(app): AppState<E>,
+pub async fn ingest(
+    State(app): AppState,
     Query(params): Query<IngestParams>,
     req: Request,
 ) -> Result<Response, ApiError> {
@@ -237,10 +236,7 @@ pub struct ListParams {
 }
 
 /// `GET /v1/shapes`.
-pub async fn list<E: Engine>(
-    State(app): AppState<E>,
-    Query(p): Query<ListParams>,
-) -> Result<Response, ApiError> {
+pub async fn list(State(app): AppState, Query(p): Query<ListParams>) -> Result<Response, ApiError> {
     let limit = p.limit.unwrap_or(50);
     if !(1..=1000).contains(&limit) {
         return Err(ApiError::invalid("limit must be in 1..=1000"));
@@ -262,10 +258,7 @@ pub async fn list<E: Engine>(
 }
 
 /// `GET /v1/shapes/{id}`.
-pub async fn get_shape<E: Engine>(
-    State(app): AppState<E>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn get_shape(State(app): AppState, Path(id): Path<String>) -> Result<Response, ApiError> {
     match app.store.get(&id).map_err(ApiError::internal)? {
         Some(rec) => Ok(Json(rec).into_response()),
         None => Err(ApiError::not_found(&id)),
@@ -273,8 +266,8 @@ pub async fn get_shape<E: Engine>(
 }
 
 /// `DELETE /v1/shapes/{id}`.
-pub async fn delete_shape<E: Engine>(
-    State(app): AppState<E>,
+pub async fn delete_shape(
+    State(app): AppState,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     if app.delete(id.clone()).await? {
@@ -285,10 +278,7 @@ pub async fn delete_shape<E: Engine>(
 }
 
 /// `GET /v1/shapes/{id}/mesh`: the original upload.
-pub async fn get_mesh<E: Engine>(
-    State(app): AppState<E>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn get_mesh(State(app): AppState, Path(id): Path<String>) -> Result<Response, ApiError> {
     let rec = app
         .store
         .get(&id)
@@ -314,8 +304,8 @@ pub async fn get_mesh<E: Engine>(
 }
 
 /// `GET /v1/shapes/{id}/signature`: the distributions as JSON.
-pub async fn get_signature<E: Engine>(
-    State(app): AppState<E>,
+pub async fn get_signature(
+    State(app): AppState,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let bytes = app
@@ -336,8 +326,8 @@ pub async fn get_signature<E: Engine>(
 }
 
 /// `POST /v1/search`: JSON (by id), multipart (`file` + `query` JSON) or a raw mesh body.
-pub async fn search<E: Engine>(
-    State(app): AppState<E>,
+pub async fn search(
+    State(app): AppState,
     Query(params): Query<SearchParams>,
     req: Request,
 ) -> Result<Response, ApiError> {
@@ -419,7 +409,7 @@ pub async fn search<E: Engine>(
 }
 
 /// `GET /v1/index`: size, calibration, specs, queue.
-pub async fn index_info<E: Engine>(State(app): AppState<E>) -> Result<Response, ApiError> {
+pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
     let (n, on, epoch) = {
         let s = app.scan.read().unwrap_or_else(|p| p.into_inner());
         (
@@ -456,7 +446,7 @@ pub async fn healthz() -> Response {
 }
 
 /// `GET /readyz`: loaded and not shutting down.
-pub async fn readyz<E: Engine>(State(app): AppState<E>) -> Result<Response, ApiError> {
+pub async fn readyz(State(app): AppState) -> Result<Response, ApiError> {
     if app.ready.load(Ordering::Acquire) {
         Ok(Json(serde_json::json!({"status": "ready", "shapes": app.store.len()})).into_response())
     } else {
@@ -469,7 +459,7 @@ pub async fn readyz<E: Engine>(State(app): AppState<E>) -> Result<Response, ApiE
 }
 
 /// `GET /metrics`: Prometheus text format.
-pub async fn metrics<E: Engine>(State(app): AppState<E>) -> Response {
+pub async fn metrics(State(app): AppState) -> Response {
     let q = app.pool.stats.queued.load(Ordering::Relaxed);
     let r = app.pool.stats.running.load(Ordering::Relaxed);
     ::metrics::gauge!("shapeseek_queue_depth").set(q as f64);

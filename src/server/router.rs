@@ -4,7 +4,6 @@ use super::config::ServerConfig;
 use super::handlers as h;
 use super::problem::{code_for_status, ApiError, PROBLEM_JSON};
 use super::state::App;
-use crate::index::Engine;
 use crate::Result;
 use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::{header, HeaderValue, StatusCode};
@@ -22,24 +21,21 @@ use tower_http::request_id::{
 use tower_http::trace::TraceLayer;
 
 /// Builds the router over a loaded [`App`].
-pub fn router<E: Engine>(app: Arc<App<E>>) -> Router {
+pub fn router(app: Arc<App>) -> Router {
     let timeout = Duration::from_secs_f64(app.cfg.request_timeout_secs);
     let v1 = Router::new()
-        .route("/v1/shapes", post(h::ingest::<E>).get(h::list::<E>))
-        .route(
-            "/v1/shapes/{id}",
-            get(h::get_shape::<E>).delete(h::delete_shape::<E>),
-        )
-        .route("/v1/shapes/{id}/mesh", get(h::get_mesh::<E>))
-        .route("/v1/shapes/{id}/signature", get(h::get_signature::<E>))
-        .route("/v1/search", post(h::search::<E>))
-        .route("/v1/index", get(h::index_info::<E>))
+        .route("/v1/shapes", post(h::ingest).get(h::list))
+        .route("/v1/shapes/{id}", get(h::get_shape).delete(h::delete_shape))
+        .route("/v1/shapes/{id}/mesh", get(h::get_mesh))
+        .route("/v1/shapes/{id}/signature", get(h::get_signature))
+        .route("/v1/search", post(h::search))
+        .route("/v1/index", get(h::index_info))
         .layer(middleware::from_fn_with_state(timeout, timeout_mw));
     Router::new()
         .merge(v1)
         .route("/healthz", get(h::healthz))
-        .route("/readyz", get(h::readyz::<E>))
-        .route("/metrics", get(h::metrics::<E>))
+        .route("/readyz", get(h::readyz))
+        .route("/metrics", get(h::metrics))
         .route("/openapi.yaml", get(h::openapi))
         .fallback(fallback)
         .layer(DefaultBodyLimit::max(app.cfg.max_body_bytes))
@@ -157,7 +153,7 @@ trait Lifecycle: Send + Sync {
     fn flush(&self) -> Result<()>;
 }
 
-impl<E: Engine> Lifecycle for App<E> {
+impl Lifecycle for App {
     fn set_ready(&self, ready: bool) {
         self.ready.store(ready, Ordering::Release);
     }
@@ -211,7 +207,7 @@ pub async fn start(cfg: ServerConfig) -> Result<Running> {
 }
 
 /// Loads the index (on a blocking thread), binds `cfg.addr` and serves in the background.
-pub async fn start_with<E: Engine>(cfg: ServerConfig, engine: E) -> Result<Running> {
+pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Result<Running> {
     cfg.validate()?;
     let grace = Duration::from_secs_f64(cfg.shutdown_grace_secs);
     let listener = tokio::net::TcpListener::bind(&cfg.addr).await?;

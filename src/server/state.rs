@@ -7,35 +7,36 @@ use super::metrics as m;
 use super::problem::ApiError;
 use crate::index::{Engine, Inserted, ScanIndex, ShapeRecord, Store};
 use crate::mesh::read::{detect_format, read_mesh, Format, ReadLimits};
-use crate::rerank::{
-    compute_payload, Candidate, Fusion, GwOptions, GwPayload, PayloadSpec, SgwStage,
-};
 use crate::spectrum::analyze;
+use crate::ranking::{Calibration, QuerySpec};
+use crate::rerank::{compute_payload, gw_score, GwPayload, PayloadSpec, SgwStage};
+use crate::search::corpus::{Corpus, Encoded, Layout};
+use crate::search::{Entry, Env, Query, Stage, StageRequest};
+use crate::signature::Signature;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::Instant;
 
-/// Calibration as stored in `meta` (the engine's calibration plus the count it saw).
+/// Calibration as stored in `meta` (the calibration plus the count it saw).
 #[derive(Serialize, Deserialize)]
-struct StoredCalibration<C> {
+struct StoredCalibration {
     calibrated_on: usize,
-    calibration: C,
+    calibration: Calibration,
 }
 
 /// Shared state of a running server.
-pub struct App<E: Engine> {
+pub struct App {
     /// Configuration.
     pub cfg: ServerConfig,
     /// The sled store.
     pub store: Store,
     /// Signatures and scoring.
-    pub engine: Arc<E>,
+    pub engine: Arc<Engine>,
     /// The in-memory scan structure.
-    pub scan: Arc<RwLock<ScanIndex<E>>>,
+    pub scan: Arc<RwLock<ScanIndex>>,
     /// Bounded CPU pool.
     pub pool: WorkPool,
     /// Mesh limits applied to uploads.
@@ -96,102 +97,20 @@ pub struct IngestResult {
     pub timings: Option<Timings>,
 }
 
-/// Most candidates a spectral Gromov–Wasserstein stage re-scores (≈ 40 ms of one core each).
-pub const MAX_GW_SHORTLIST: usize = 200;
+pub use crate::search::stage::{MAX_GW_SHORTLIST, MAX_RECIPROCAL_SHORTLIST};
 
-/// Most candidates a reciprocal-neighbourhood stage re-ranks (it scores every pair of them:
-/// 10⁶ first-stage scores at the limit).
-pub const MAX_RECIPROCAL_SHORTLIST: usize = 1000;
+/// One rerank stage of a search request (see [`StageRequest`]).
+pub type RerankStage = StageRequest;
 
-/// One rerank stage of a search. Tagged by `stage`; each stage is a variant with its own
-/// fields.
-#[derive(Debug, Clone, Deserialize, Serialize)]
-#[serde(tag = "stage", rename_all = "snake_case", deny_unknown_fields)]
-pub enum RerankStage {
-    /// Re-scores the best `shortlist` candidates of the previous stage with another query spec
-    /// (typically more channels or a costlier dissimilarity), exactly, and re-sorts them.
-    Exact {
-        /// How many candidates of the previous stage to re-score (default: 4 × top_k).
-        #[serde(default)]
-        shortlist: Option<usize>,
-        /// Query spec overrides for this stage (merged over the request's spec).
-        #[serde(default)]
-        spec: Option<serde_json::Value>,
-    },
-    /// Spectral Gromov–Wasserstein re-ranking (paper footnote 2; `crate::rerank`): the best
-    /// `shortlist` candidates of the previous stage are re-scored by the entropic GW
-    /// discrepancy between the query's and each candidate's stored payload (diffusion
-    /// distances on farthest-point samples) and re-sorted (ties keep the previous order).
-    SpectralGw {
-        /// How many candidates to re-score (default 20, at most [`MAX_GW_SHORTLIST`]).
-        #[serde(default)]
-        shortlist: Option<usize>,
-        /// Entropic regularisation relative to the mean cost (default 0.003, in [1e-4, 1]).
-        #[serde(default)]
-        eps_rel: Option<f64>,
-        /// Outer linearisation iterations (default 5, in 1..=20).
-        #[serde(default)]
-        outer_iterations: Option<usize>,
-        /// Weight of the previous stage's rank in a rank blend (`w·rank_prev + (1−w)·rank_gw`,
-        /// in [0, 1]); absent: order by the GW score alone.
-        #[serde(default)]
-        blend: Option<f64>,
-    },
-    /// Reciprocal-neighbourhood re-ranking (`crate::rerank::reciprocal`): the best `shortlist`
-    /// candidates are re-ordered by how much their neighbourhoods (within the shortlist, under
-    /// the first stage's dissimilarity) overlap the query's. Part of the default search.
-    Reciprocal {
-        /// How many candidates to re-rank (default 200, at most [`MAX_RECIPROCAL_SHORTLIST`]).
-        #[serde(default)]
-        shortlist: Option<usize>,
-        /// Neighbourhood sizes averaged (default [8, 16, 32]; 1 to 8 sizes in 1..=1000).
-        #[serde(default)]
-        neighbourhoods: Option<Vec<usize>>,
-        /// Local query expansion (default 4, in 1..=100).
-        #[serde(default)]
-        expansion: Option<usize>,
-        /// Weight of the first-stage dissimilarity in the score (default 0.1, in [0, 1]).
-        #[serde(default)]
-        original_weight: Option<f64>,
-    },
-}
-
-/// A search candidate between stages (`at`: position in the scan while it is locked).
-struct Entry {
-    at: usize,
+/// A search candidate between stages: its id and name (`at` of the entry is its position in
+/// the scan while it is locked).
+struct Hitting {
     id: String,
     name: String,
-    score: f64,
-    stage_scores: Vec<f64>,
-}
-
-/// A validated rerank stage.
-enum Plan<Q> {
-    Exact(usize, Q),
-    Gw(usize, crate::rerank::RerankStage),
-    Reciprocal(crate::rerank::ReciprocalStage),
-}
-
-impl<Q> Plan<Q> {
-    fn shortlist(&self) -> usize {
-        match self {
-            Plan::Exact(n, _) | Plan::Gw(n, _) => *n,
-            Plan::Reciprocal(r) => r.shortlist,
-        }
-    }
-
-    /// The stage's name in `stages` of the answer (its `stage` tag in the request).
-    fn name(&self) -> &'static str {
-        match self {
-            Plan::Exact(..) => "exact",
-            Plan::Gw(..) => "spectral_gw",
-            Plan::Reciprocal(_) => "reciprocal",
-        }
-    }
 }
 
 /// A query analysed for search-by-example: signature, payload (when a stage needs it), timings.
-pub type QueryAnalysis<S> = (S, Option<GwPayload>, Timings);
+pub type QueryAnalysis = (Signature, Option<GwPayload>, Timings);
 
 /// The search options shared by all ways to give the query.
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -291,7 +210,7 @@ pub fn validate_tags(tags: &[String]) -> Result<(), ApiError> {
     Ok(())
 }
 
-impl<E: Engine> App<E> {
+impl App {
     /// Prepare + spectrum + signature (+ re-ranking payload when `with_payload`) of a parsed
     /// mesh, recording the stage timings: the one path shared by ingest and search-by-upload.
     fn analyze_and_sign(
@@ -299,7 +218,7 @@ impl<E: Engine> App<E> {
         mesh: &crate::mesh::Mesh,
         t: &mut Timings,
         with_payload: bool,
-    ) -> Result<(crate::spectrum::Analysis, E::Signature, Option<GwPayload>), ApiError> {
+    ) -> Result<(crate::spectrum::Analysis, Signature, Option<GwPayload>), ApiError> {
         let analysis = analyze(mesh, &self.engine.analyze_options())?;
         t.prepare_ms = analysis.timings.prepare_ms;
         t.laplacian_ms = analysis.timings.laplacian_ms;
@@ -320,7 +239,7 @@ impl<E: Engine> App<E> {
     }
 
     /// Opens the store, recomputes stale signatures, calibrates if needed, builds the scan.
-    pub fn load(cfg: ServerConfig, engine: E) -> crate::Result<Self> {
+    pub fn load(cfg: ServerConfig, engine: Engine) -> crate::Result<Self> {
         let store = Store::open(&cfg.data)?;
         let engine = Arc::new(engine);
         let limits = ReadLimits {
@@ -360,17 +279,17 @@ impl<E: Engine> App<E> {
                     sig
                 }
             };
-            shapes.push((rec.id, rec.name, rec.tags, Arc::new(sig)));
+            shapes.push((rec.id, rec.name, rec.tags, sig));
         }
         if recomputed > 0 {
             tracing::info!(recomputed, "signatures recomputed for the current spec");
         }
 
-        let stored: Option<StoredCalibration<E::Calibration>> = store
+        let stored: Option<StoredCalibration> = store
             .calibration()?
             .and_then(|b| serde_json::from_slice(&b).ok());
         let scan = if shapes.is_empty() {
-            ScanIndex::<E>::default()
+            ScanIndex::default()
         } else {
             let (cal, on) = match stored {
                 Some(s)
@@ -383,7 +302,7 @@ impl<E: Engine> App<E> {
                     let epoch = other
                         .map(|s| engine.calibration_epoch(&s.calibration) + 1)
                         .unwrap_or(1);
-                    let sigs: Vec<&E::Signature> = shapes.iter().map(|s| &*s.3).collect();
+                    let sigs: Vec<&Signature> = shapes.iter().map(|s| &s.3).collect();
                     let cal = engine.calibrate(&sigs, epoch);
                     let on = shapes.len();
                     store.set_calibration(&to_json(&StoredCalibration {
@@ -393,7 +312,7 @@ impl<E: Engine> App<E> {
                     (cal, on)
                 }
             };
-            ScanIndex::build(&*engine, Arc::new(cal), on, shapes)
+            ScanIndex::build(Arc::new(cal), on, shapes)
         };
         let workers = cfg.effective_workers();
         let app = App {
@@ -527,14 +446,7 @@ impl<E: Engine> App<E> {
         };
         {
             let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
-            scan.insert(
-                &self.engine,
-                id.clone(),
-                record.name.clone(),
-                record.tags.clone(),
-                Arc::new(sig),
-                1,
-            );
+            scan.insert(&self.engine, &id, &record.name, &record.tags, &sig, 1);
         }
         t.store_ms = ms(t3);
         t.total_ms = ms(t0);
@@ -604,7 +516,7 @@ impl<E: Engine> App<E> {
                     break;
                 }
                 (
-                    s.snapshot(),
+                    s.ids(),
                     s.calibration()
                         .map(|c| self.engine.calibration_epoch(c))
                         .unwrap_or(0)
@@ -612,13 +524,27 @@ impl<E: Engine> App<E> {
                 )
             };
             let t = Instant::now();
-            let sigs: Vec<&E::Signature> = snapshot.iter().map(|(_, s)| &**s).collect();
-            let cal = Arc::new(self.engine.calibrate(&sigs, epoch));
-            use rayon::prelude::*;
-            let prepared: HashMap<String, E::Prepared> = snapshot
+            // Signatures are not kept in memory: read them from the store, outside the lock.
+            let sigs: Vec<(usize, Signature)> = snapshot
                 .par_iter()
-                .map(|(id, s)| (id.clone(), self.engine.prepare(s, &cal)))
+                .enumerate()
+                .filter_map(|(i, id)| self.stored_signature(id).map(|s| (i, s)))
                 .collect();
+            let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
+            let cal = Arc::new(self.engine.calibrate(&refs, epoch));
+            let layout = Layout::of(&cal);
+            let mut encoded: Vec<Encoded> = vec![Encoded::absent(&layout); snapshot.len()];
+            let done: Vec<(usize, Encoded)> = sigs
+                .par_iter()
+                .map(|(i, s)| (*i, Encoded::from_signature(s, &cal, &layout)))
+                .collect();
+            drop(refs);
+            drop(sigs);
+            for (i, e) in done {
+                encoded[i] = e;
+            }
+            let corpus = Corpus::build(layout, &encoded);
+            drop(encoded);
             let on = snapshot.len();
             if let Err(e) = self.store.set_calibration(&to_json(&StoredCalibration {
                 calibrated_on: on,
@@ -629,7 +555,16 @@ impl<E: Engine> App<E> {
             self.scan
                 .write()
                 .unwrap_or_else(|p| p.into_inner())
-                .install_calibration(&self.engine, cal, on, prepared);
+                .install_calibration(
+                    cal,
+                    on,
+                    &snapshot,
+                    corpus,
+                    &mut |id, cal, layout| match self.stored_signature(id) {
+                        Some(s) => Encoded::from_signature(&s, cal, layout),
+                        None => Encoded::absent(layout),
+                    },
+                );
             tracing::info!(epoch, shapes = on, ms = ms(t), "recalibrated");
             self.update_gauges();
         }
@@ -641,61 +576,35 @@ impl<E: Engine> App<E> {
         }
     }
 
+    /// The stored signature of `id` (`None`, logged, when it is missing or unreadable).
+    fn stored_signature(&self, id: &str) -> Option<Signature> {
+        match self.store.signature(id) {
+            Ok(Some(b)) => match self.engine.decode_signature(&b) {
+                Ok(s) => Some(s),
+                Err(e) => {
+                    tracing::error!(id, error = %e, "unreadable stored signature");
+                    None
+                }
+            },
+            Ok(None) => None,
+            Err(e) => {
+                tracing::error!(id, error = %e, "could not read a stored signature");
+                None
+            }
+        }
+    }
+
     /// True when a search with `opts` runs a stage that compares re-ranking payloads (the
     /// query's must then be computed with its signature).
     pub fn search_needs_payload(&self, opts: &SearchOptions) -> bool {
         match &opts.rerank {
-            Some(list) => list
-                .iter()
-                .any(|s| matches!(s, RerankStage::SpectralGw { .. })),
+            Some(list) => list.iter().any(StageRequest::needs_payload),
             None => self
                 .engine
-                .default_rerank()
+                .default_stages()
                 .iter()
                 .any(|s| s.payload_spec().is_some()),
         }
-    }
-
-    /// Validates one requested stage into its plan.
-    fn plan(
-        &self,
-        st: &RerankStage,
-        top_k: usize,
-        spec_json: &serde_json::Value,
-    ) -> Result<Plan<E::Query>, ApiError> {
-        Ok(match st {
-            RerankStage::Exact { shortlist, spec: s } => {
-                let n = shortlist.unwrap_or(4 * top_k);
-                if n == 0 || n > self.cfg.max_top_k {
-                    return Err(ApiError::invalid(format!(
-                        "rerank shortlist must be in 1..={}",
-                        self.cfg.max_top_k
-                    )));
-                }
-                let (q, _) = self.query_spec(spec_json, s.as_ref())?;
-                Plan::Exact(n, q)
-            }
-            RerankStage::SpectralGw {
-                shortlist,
-                eps_rel,
-                outer_iterations,
-                blend,
-            } => {
-                let st = gw_stage(*shortlist, *eps_rel, *outer_iterations, *blend)?;
-                Plan::Gw(st.shortlist_len(), st)
-            }
-            RerankStage::Reciprocal {
-                shortlist,
-                neighbourhoods,
-                expansion,
-                original_weight,
-            } => Plan::Reciprocal(reciprocal_stage(
-                *shortlist,
-                neighbourhoods,
-                *expansion,
-                *original_weight,
-            )?),
-        })
     }
 
     /// The effective query spec: `overrides` (a JSON object) merged over `base`.
@@ -703,7 +612,7 @@ impl<E: Engine> App<E> {
         &self,
         base: &serde_json::Value,
         overrides: Option<&serde_json::Value>,
-    ) -> Result<(E::Query, serde_json::Value), ApiError> {
+    ) -> Result<(QuerySpec, serde_json::Value), ApiError> {
         let mut v = base.clone();
         if let Some(o) = overrides {
             let serde_json::Value::Object(o) = o else {
@@ -722,12 +631,52 @@ impl<E: Engine> App<E> {
                 b.insert(k.clone(), val.clone());
             }
         }
-        let q: E::Query = serde_json::from_value(v.clone())
+        let q: QuerySpec = serde_json::from_value(v.clone())
             .map_err(|e| ApiError::invalid(format!("spec: {e}")))?;
         self.engine
             .validate_query(&q)
             .map_err(|e| ApiError::invalid(format!("spec: {e}")))?;
         Ok((q, v))
+    }
+
+    /// The stages of a search: the request's, validated, or the index's defaults (a default
+    /// reciprocal stage re-ranks at least `top_k`).
+    fn stages(
+        &self,
+        opts: &SearchOptions,
+        top_k: usize,
+        spec_json: &serde_json::Value,
+    ) -> Result<Vec<Stage>, ApiError> {
+        match &opts.rerank {
+            Some(list) => {
+                if list.len() > 8 {
+                    return Err(ApiError::invalid("at most 8 rerank stages"));
+                }
+                let spec = |o: Option<&serde_json::Value>| {
+                    self.query_spec(spec_json, o)
+                        .map(|(q, _)| q)
+                        .map_err(|e| crate::Error::InvalidArgument(e.detail))
+                };
+                list.iter()
+                    .map(|st| {
+                        st.resolve(top_k, self.cfg.max_top_k, &spec)
+                            .map_err(|e| ApiError::invalid(invalid_detail(e)))
+                    })
+                    .collect()
+            }
+            None => Ok(self
+                .engine
+                .default_stages()
+                .into_iter()
+                .map(|st| match st {
+                    Stage::Reciprocal(mut r) => {
+                        r.shortlist = r.shortlist.max(top_k);
+                        Stage::Reciprocal(r)
+                    }
+                    other => other,
+                })
+                .collect()),
+        }
     }
 
     /// Analyses an uploaded query mesh on the pool (nothing is stored); the re-ranking
@@ -736,11 +685,11 @@ impl<E: Engine> App<E> {
         self: &Arc<Self>,
         up: Upload,
         with_payload: bool,
-    ) -> Result<QueryAnalysis<E::Signature>, ApiError> {
+    ) -> Result<QueryAnalysis, ApiError> {
         let app = self.clone();
         let t0 = Instant::now();
         self.pool
-            .run(move || -> Result<QueryAnalysis<E::Signature>, ApiError> {
+            .run(move || -> Result<QueryAnalysis, ApiError> {
                 let mut t = Timings::default();
                 let t1 = Instant::now();
                 let mesh = read_mesh(&up.bytes, up.hint, &app.limits)?;
@@ -756,7 +705,7 @@ impl<E: Engine> App<E> {
     pub async fn search(
         self: &Arc<Self>,
         opts: SearchOptions,
-        query_sig: Option<QueryAnalysis<E::Signature>>,
+        query_sig: Option<QueryAnalysis>,
     ) -> Result<SearchResult, ApiError> {
         let t0 = Instant::now();
         let top_k = opts.top_k.unwrap_or(10);
@@ -769,34 +718,9 @@ impl<E: Engine> App<E> {
         validate_tags(&opts.tags)?;
         let base = serde_json::to_value(self.engine.default_query()).map_err(ApiError::internal)?;
         let (spec, spec_json) = self.query_spec(&base, opts.spec.as_ref())?;
-        let mut stages = Vec::new();
-        match &opts.rerank {
-            Some(list) => {
-                if list.len() > 8 {
-                    return Err(ApiError::invalid("at most 8 rerank stages"));
-                }
-                for st in list {
-                    stages.push(self.plan(st, top_k, &spec_json)?);
-                }
-            }
-            None => {
-                for st in self.engine.default_rerank() {
-                    match st {
-                        crate::rerank::RerankStage::None => {}
-                        crate::rerank::RerankStage::SpectralGw(g) => stages.push(Plan::Gw(
-                            g.shortlist,
-                            crate::rerank::RerankStage::SpectralGw(g),
-                        )),
-                        crate::rerank::RerankStage::Reciprocal(mut r) => {
-                            r.shortlist = r.shortlist.max(top_k);
-                            stages.push(Plan::Reciprocal(r))
-                        }
-                    }
-                }
-            }
-        }
+        let stages = self.stages(&opts, top_k, &spec_json)?;
         let (query_sig, upload_payload, analysis_t) = match query_sig {
-            Some((s, p, t)) => (Some(Arc::new(s)), p, Some(t)),
+            Some((s, p, t)) => (Some(s), p, Some(t)),
             None => (None, None, None),
         };
         if query_sig.is_none() && opts.id.is_none() {
@@ -808,11 +732,11 @@ impl<E: Engine> App<E> {
         let stage_names: Vec<String> = std::iter::once("scan".to_string())
             .chain(stages.iter().map(|p| p.name().to_string()))
             .collect();
-        let needs_payload = stages.iter().any(|p| matches!(p, Plan::Gw(..)));
+        let needs_payload = stages.iter().any(|p| p.payload_spec().is_some());
         let (hits, epoch, candidates, scan_ms, rerank_ms) =
             tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
-                let mut scan = Some(app.scan.read().unwrap_or_else(|p| p.into_inner()));
-                let s = scan.as_ref().expect("locked");
+                let guard = app.scan.read().unwrap_or_else(|p| p.into_inner());
+                let s = &*guard;
                 let Some(cal) = s.calibration().cloned() else {
                     if let Some(id) = &opts.id {
                         return Err(ApiError::not_found(id));
@@ -820,15 +744,17 @@ impl<E: Engine> App<E> {
                     return Ok((Vec::new(), 0, 0, 0.0, 0.0));
                 };
                 let epoch = app.engine.calibration_epoch(&cal);
-                let (query, self_at): (Arc<E::Prepared>, Option<usize>) =
-                    match (&query_sig, &opts.id) {
-                        (Some(sig), _) => (Arc::new(app.engine.prepare(sig, &cal)), None),
-                        (None, Some(id)) => {
-                            let at = s.position(id).ok_or_else(|| ApiError::not_found(id))?;
-                            (Arc::new(s.prepared()[at].clone()), Some(at))
-                        }
-                        (None, None) => return Err(ApiError::invalid("no query given")),
-                    };
+                let (query, self_at): (Encoded, Option<usize>) = match (&query_sig, &opts.id) {
+                    (Some(sig), _) => (
+                        Encoded::from_signature(sig, &cal, s.corpus().layout()),
+                        None,
+                    ),
+                    (None, Some(id)) => {
+                        let at = s.position(id).ok_or_else(|| ApiError::not_found(id))?;
+                        (s.corpus().encoded(at), Some(at))
+                    }
+                    (None, None) => return Err(ApiError::invalid("no query given")),
+                };
                 let query_payload = match (&upload_payload, &opts.id) {
                     _ if !needs_payload => None,
                     (Some(p), _) => Some(p.clone()),
@@ -845,98 +771,49 @@ impl<E: Engine> App<E> {
                     (None, None) => None,
                 };
                 let exclude = if opts.include_self { None } else { self_at };
-                let tags = &opts.tags;
-                let keep =
-                    |at: usize| Some(at) != exclude && tags.iter().all(|t| s.tags(at).contains(t));
+                let filter = s.tag_filter(&opts.tags);
+                let keep = |at: usize| Some(at) != exclude && s.has_tags(at, &filter);
                 let candidates = (0..s.len()).filter(|&at| keep(at)).count();
                 let first_k = stages
                     .iter()
-                    .map(Plan::shortlist)
+                    .map(Stage::shortlist)
                     .max()
                     .unwrap_or(0)
                     .max(top_k);
                 let t1 = Instant::now();
-                let mut list: Vec<Entry> = s
-                    .rank(&app.engine, &query, &spec, first_k, &keep)
+                let q = Query::new(&spec, s.corpus().layout());
+                let list: Vec<Entry<Hitting>> = s
+                    .rank(&query, &q, first_k, &keep)
                     .into_iter()
                     .map(|sc| Entry {
                         at: sc.at,
-                        id: s.id(sc.at).to_string(),
-                        name: s.name(sc.at).to_string(),
+                        item: Hitting {
+                            id: s.id(sc.at).to_string(),
+                            name: s.name(sc.at).to_string(),
+                        },
                         score: sc.score,
                         stage_scores: vec![sc.score],
                     })
                     .collect();
                 let scan_ms = ms(t1);
                 let t2 = Instant::now();
-                for plan in &stages {
-                    match plan {
-                        Plan::Exact(n, q) => {
-                            list.truncate(*n);
-                            let s = relocked(&mut scan, &app.scan, &mut list);
-                            for e in list.iter_mut() {
-                                e.score = app.engine.score(&query, &s.prepared()[e.at], q);
-                                e.stage_scores.push(e.score);
-                            }
-                            list.sort_by(|a, b| a.score.total_cmp(&b.score).then(a.at.cmp(&b.at)));
-                        }
-                        Plan::Gw(n, stage) => {
-                            list.truncate(*n);
-                            // The solves take up to seconds: not under the scan lock (it would
-                            // hold back writers, and readers queued behind them).
-                            scan = None;
-                            let Some(qp) = &query_payload else {
-                                return Err(ApiError::internal("no query payload"));
-                            };
-                            let payloads: Vec<Option<GwPayload>> = list
-                                .iter()
-                                .map(|e| app.stored_payload(&e.id))
-                                .collect::<Result<_, _>>()?;
-                            let shortlist: Vec<Candidate<'_, usize>> = list
-                                .iter()
-                                .zip(&payloads)
-                                .enumerate()
-                                .map(|(i, (e, p))| Candidate {
-                                    id: i,
-                                    score: e.score,
-                                    payload: p.as_ref(),
-                                })
-                                .collect();
-                            let order = crate::rerank::apply(stage, qp, &shortlist);
-                            list = reorder(list, order);
-                        }
-                        Plan::Reciprocal(stage) => {
-                            list.truncate(stage.shortlist);
-                            let s = relocked(&mut scan, &app.scan, &mut list);
-                            // The query and the candidates, each pair once (the upper
-                            // triangle), under the request's (first-stage) query spec.
-                            let prepared = s.prepared();
-                            let items: Vec<&E::Prepared> = std::iter::once(&*query)
-                                .chain(list.iter().map(|e| &prepared[e.at]))
-                                .collect();
-                            let m = items.len();
-                            let rows: Vec<Vec<f64>> = (0..m)
-                                .into_par_iter()
-                                .map(|a| app.engine.score_row(items[a], &items[a + 1..], &spec))
-                                .collect();
-                            let mut d = vec![0.0; m * m];
-                            for (a, row) in rows.iter().enumerate() {
-                                d[a * m + a + 1..(a + 1) * m].copy_from_slice(row);
-                            }
-                            let order = crate::rerank::reciprocal::rerank(&d, m, stage);
-                            list = reorder(list, order);
-                        }
-                    }
-                }
-                drop(scan);
+                let mut env = ServerEnv {
+                    app: &app,
+                    scan: Some(guard),
+                    query,
+                    first: spec,
+                    query_payload,
+                };
+                let mut list = crate::search::run(&stages, list, &mut env)?;
+                drop(env);
                 let rerank_ms = ms(t2);
                 list.truncate(top_k);
                 let hits: Vec<Hit> = list
                     .into_iter()
                     .enumerate()
                     .map(|(r, e)| Hit {
-                        id: e.id,
-                        name: e.name,
+                        id: e.item.id,
+                        name: e.item.name,
                         score: e.score,
                         rank: r + 1,
                         calibration_epoch: epoch,
@@ -963,106 +840,107 @@ impl<E: Engine> App<E> {
     }
 }
 
-/// The scan for a stage that needs it: the held guard, or, after a stage that ran unlocked, the
-/// lock taken again — positions may have moved and shapes deleted meanwhile leave `list`.
-fn relocked<'g, 'a, E: Engine>(
-    scan: &'g mut Option<std::sync::RwLockReadGuard<'a, ScanIndex<E>>>,
-    lock: &'a RwLock<ScanIndex<E>>,
-    list: &mut Vec<Entry>,
-) -> &'g ScanIndex<E> {
-    if scan.is_none() {
-        let s = scan.insert(lock.read().unwrap_or_else(|p| p.into_inner()));
-        list.retain_mut(|e| match s.position(&e.id) {
-            Some(at) => {
-                e.at = at;
-                true
-            }
-            None => false,
-        });
+/// The message of a validation error (without the error kind's prefix).
+fn invalid_detail(e: crate::Error) -> String {
+    match e {
+        crate::Error::InvalidArgument(m) => m,
+        other => other.to_string(),
     }
-    scan.as_ref().expect("locked")
 }
 
-/// A shortlist re-ordered by a stage: `order` = (index in `list`, new score), best first.
-fn reorder(list: Vec<Entry>, order: Vec<(usize, f64)>) -> Vec<Entry> {
-    let mut old: Vec<Option<Entry>> = list.into_iter().map(Some).collect();
-    order
-        .into_iter()
-        .filter_map(|(i, score)| {
-            let mut e = old[i].take()?;
-            e.score = score;
-            e.stage_scores.push(score);
-            Some(e)
-        })
-        .collect()
+/// What the stages of a server search read: the scan (locked while a stage reads it, released
+/// during GW solves, which take up to seconds and would hold back writers and the readers
+/// queued behind them) and the store's payloads.
+struct ServerEnv<'a> {
+    app: &'a App,
+    scan: Option<std::sync::RwLockReadGuard<'a, ScanIndex>>,
+    query: Encoded,
+    first: QuerySpec,
+    query_payload: Option<GwPayload>,
 }
 
-/// Validates the fields of a reciprocal stage into the library's stage.
-fn reciprocal_stage(
-    shortlist: Option<usize>,
-    neighbourhoods: &Option<Vec<usize>>,
-    expansion: Option<usize>,
-    original_weight: Option<f64>,
-) -> Result<crate::rerank::ReciprocalStage, ApiError> {
-    let d = crate::rerank::ReciprocalStage::default();
-    let st = crate::rerank::ReciprocalStage {
-        shortlist: shortlist.unwrap_or(d.shortlist),
-        neighbourhoods: neighbourhoods.clone().unwrap_or(d.neighbourhoods),
-        expansion: expansion.unwrap_or(d.expansion),
-        original_weight: original_weight.unwrap_or(d.original_weight),
-    };
-    if st.shortlist == 0 || st.shortlist > MAX_RECIPROCAL_SHORTLIST {
-        return Err(ApiError::invalid(format!(
-            "reciprocal shortlist must be in 1..={MAX_RECIPROCAL_SHORTLIST}"
-        )));
-    }
-    st.validate()
-        .map_err(|m| ApiError::invalid(format!("reciprocal {m}")))?;
-    Ok(st)
-}
-
-/// Validates the fields of a spectral-GW stage into the library's stage.
-fn gw_stage(
-    shortlist: Option<usize>,
-    eps_rel: Option<f64>,
-    outer_iterations: Option<usize>,
-    blend: Option<f64>,
-) -> Result<crate::rerank::RerankStage, ApiError> {
-    let defaults = SgwStage::default();
-    let n = shortlist.unwrap_or(defaults.shortlist);
-    if n == 0 || n > MAX_GW_SHORTLIST {
-        return Err(ApiError::invalid(format!(
-            "spectral_gw shortlist must be in 1..={MAX_GW_SHORTLIST}"
-        )));
-    }
-    let mut gw = GwOptions::default();
-    if let Some(e) = eps_rel {
-        if !(1e-4..=1.0).contains(&e) {
-            return Err(ApiError::invalid(
-                "spectral_gw eps_rel must be in [1e-4, 1]",
-            ));
+impl ServerEnv<'_> {
+    /// The scan, locked again after a stage that ran unlocked: positions may have moved, and
+    /// shapes deleted meanwhile leave `list`.
+    fn relocked(&mut self, list: &mut Vec<Entry<Hitting>>) -> &ScanIndex {
+        if self.scan.is_none() {
+            let s = self
+                .scan
+                .insert(self.app.scan.read().unwrap_or_else(|p| p.into_inner()));
+            list.retain_mut(|e| match s.position(&e.item.id) {
+                Some(at) => {
+                    e.at = at;
+                    true
+                }
+                None => false,
+            });
         }
-        gw.eps_rel = e;
+        self.scan.as_deref().expect("locked")
     }
-    if let Some(o) = outer_iterations {
-        if !(1..=20).contains(&o) {
-            return Err(ApiError::invalid(
-                "spectral_gw outer_iterations must be in 1..=20",
-            ));
+}
+
+impl Env<Hitting> for ServerEnv<'_> {
+    type Error = ApiError;
+
+    fn rescore(
+        &mut self,
+        list: &mut Vec<Entry<Hitting>>,
+        query: &QuerySpec,
+    ) -> Result<Vec<f64>, ApiError> {
+        let qv = self.query.clone();
+        let s = self.relocked(list);
+        let c = s.corpus();
+        let q = Query::new(query, c.layout());
+        Ok(list
+            .iter()
+            .map(|e| q.score(c.layout(), qv.view(), c.shape(e.at)))
+            .collect())
+    }
+
+    fn pairwise(&mut self, list: &mut Vec<Entry<Hitting>>) -> Result<Vec<f64>, ApiError> {
+        let qv = self.query.clone();
+        let first = self.first.clone();
+        let s = self.relocked(list);
+        let c = s.corpus();
+        let q = Query::new(&first, c.layout());
+        // The query and the candidates, each pair once (the upper triangle).
+        let items: Vec<crate::search::ShapeRef<'_>> = std::iter::once(qv.view())
+            .chain(list.iter().map(|e| c.shape(e.at)))
+            .collect();
+        let m = items.len();
+        let rows: Vec<Vec<f64>> = (0..m)
+            .into_par_iter()
+            .map(|a| {
+                items[a + 1..]
+                    .iter()
+                    .map(|&b| q.score(c.layout(), items[a], b))
+                    .collect()
+            })
+            .collect();
+        let mut d = vec![0.0; m * m];
+        for (a, row) in rows.iter().enumerate() {
+            d[a * m + a + 1..(a + 1) * m].copy_from_slice(row);
         }
-        gw.outer_iterations = o;
+        Ok(d)
     }
-    let fusion = match blend {
-        None => Fusion::Replace,
-        Some(w) if (0.0..=1.0).contains(&w) => Fusion::RankBlend { weight: w },
-        Some(_) => return Err(ApiError::invalid("spectral_gw blend must be in [0, 1]")),
-    };
-    Ok(crate::rerank::RerankStage::SpectralGw(SgwStage {
-        shortlist: n,
-        payload: PayloadSpec::default(),
-        gw,
-        fusion,
-    }))
+
+    fn gw(&mut self, list: &[Entry<Hitting>], stage: &SgwStage) -> Result<Vec<f64>, ApiError> {
+        self.scan = None;
+        let Some(qp) = &self.query_payload else {
+            return Err(ApiError::internal("no query payload"));
+        };
+        let payloads: Vec<Option<GwPayload>> = list
+            .iter()
+            .map(|e| self.app.stored_payload(&e.item.id))
+            .collect::<Result<_, _>>()?;
+        Ok(payloads
+            .par_iter()
+            .map(|p| match p {
+                Some(p) => gw_score(qp, p, &stage.gw),
+                None => f64::INFINITY,
+            })
+            .collect())
+    }
 }
 
 fn moved(calibrated_on: usize, n: usize, fraction: f64) -> bool {

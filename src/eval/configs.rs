@@ -1,0 +1,149 @@
+//! Which configurations a run evaluates: presets, files, union signature specifications.
+
+use super::*;
+
+/// Resolves `--config`.
+pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
+    let presets = || {
+        let mut v = presets::paper_configs();
+        let d = presets::default_config();
+        if !v.iter().any(|c| c.name == d.name) {
+            v.push(d);
+        }
+        v
+    };
+    let Some(spec) = spec else {
+        return Ok(presets());
+    };
+    let path = Path::new(spec);
+    if path.is_file() {
+        let text = std::fs::read_to_string(path)?;
+        let is_toml = path.extension().and_then(|e| e.to_str()) == Some("toml");
+        let v: Value = if is_toml {
+            let t: toml::Value = toml::from_str(&text)
+                .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?;
+            serde_json::to_value(t)
+                .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?
+        } else {
+            serde_json::from_str(&text)
+                .map_err(|e| Error::InvalidArgument(format!("config {spec}: {e}")))?
+        };
+        let items = match v {
+            Value::Array(a) => a,
+            Value::Object(ref o) if o.contains_key("configs") => match &o["configs"] {
+                Value::Array(a) => a.clone(),
+                _ => {
+                    return Err(Error::InvalidArgument(format!(
+                        "config {spec}: 'configs' must be a list"
+                    )))
+                }
+            },
+            other => vec![other],
+        };
+        let mut out = Vec::new();
+        for (i, item) in items.into_iter().enumerate() {
+            let c: Config = serde_json::from_value(item)
+                .map_err(|e| Error::InvalidArgument(format!("config {spec}, entry {i}: {e}")))?;
+            out.push(c);
+        }
+        if out.is_empty() {
+            return Err(Error::InvalidArgument(format!(
+                "config {spec}: no configuration"
+            )));
+        }
+        return Ok(out);
+    }
+    match spec {
+        "all" => Ok(presets()),
+        "paper" => Ok(presets::paper_configs()),
+        "default" => Ok(vec![presets::default_config()]),
+        names => {
+            let all = presets();
+            names
+                .split(',')
+                .map(|n| n.trim())
+                .filter(|n| !n.is_empty())
+                .map(|n| {
+                    all.iter().find(|c| c.name == n).cloned().ok_or_else(|| {
+                        Error::InvalidArgument(format!(
+                            "--config {n}: not a file, a preset (paper, default, all) or a configuration name; closest: {}",
+                            presets::closest_names(n, 5).join(", ")
+                        ))
+                    })
+                })
+                .collect()
+        }
+    }
+}
+
+/// Groups of configurations sharing one signature specification: the union of their channels,
+/// for specifications that are equal apart from the channel list.
+pub fn union_specs(configs: &[Config]) -> (Vec<SignatureSpec>, Vec<usize>) {
+    let mut specs: Vec<SignatureSpec> = Vec::new();
+    let mut bases: Vec<Value> = Vec::new();
+    let mut group_of = Vec::with_capacity(configs.len());
+    for c in configs {
+        let mut base = c.signature.clone();
+        base.channels.clear();
+        let bv = serde_json::to_value(&base).unwrap_or(Value::Null);
+        let g = match bases.iter().position(|b| *b == bv && bv != Value::Null) {
+            Some(g) => g,
+            None => {
+                bases.push(bv);
+                specs.push(base);
+                specs.len() - 1
+            }
+        };
+        // Channels are identified by name (as queries refer to them).
+        for ch in &c.signature.channels {
+            let name = ch.name();
+            if !specs[g].channels.iter().any(|x| x.name() == name) {
+                specs[g].channels.push(ch.clone());
+            }
+        }
+        group_of.push(g);
+    }
+    (specs, group_of)
+}
+
+/// Does a signature computed for `big` hold every channel of `small`, computed the same way?
+pub fn covers(big: &SignatureSpec, small: &SignatureSpec) -> bool {
+    let base = |s: &SignatureSpec| {
+        let mut b = s.clone();
+        b.channels.clear();
+        serde_json::to_value(&b).ok()
+    };
+    base(big).is_some()
+        && base(big) == base(small)
+        && small
+            .channels
+            .iter()
+            .all(|c| big.channels.iter().any(|x| x == c))
+}
+
+/// The name of a preset configuration that is the same method as `cfg` under another name:
+/// same query, same specifications of the queried channels, same discretisation (other channels
+/// of a shared family specification do not matter). Used for reference look-ups.
+pub fn alias_of(cfg: &Config) -> Option<String> {
+    let method = |c: &Config| {
+        let chans: Vec<Option<&crate::signature::ChannelSpec>> = c
+            .query
+            .channels
+            .iter()
+            .map(|n| c.signature.channels.iter().find(|x| &x.name() == n))
+            .collect();
+        let mut base = c.signature.clone();
+        base.channels.clear();
+        (
+            serde_json::to_value(&c.query).ok(),
+            serde_json::to_value(&chans).ok(),
+            serde_json::to_value(&base).ok(),
+            serde_json::to_value(&c.rerank).ok(),
+        )
+    };
+    let me = method(cfg);
+    presets::paper_configs()
+        .into_iter()
+        .find(|c| c.name != cfg.name && method(c) == me)
+        .map(|c| c.name)
+}

@@ -1,0 +1,416 @@
+//! The corpus layout: every stored shape's channels under one calibration, shape-major, in a
+//! few flat arrays.
+//!
+//! The channel layout (names, bin count, bin width, which channels are histograms and which
+//! are vectors) is held once per corpus in a [`Layout`]. Per shape and histogram channel the
+//! corpus keeps:
+//!
+//! * the normalised bin probabilities quantised to `u16` counts summing exactly to
+//!   [`TOTAL`] (largest-remainder rounding; an empty histogram is all zeros);
+//! * the in-window mass `M` (one `f64`), from which the densities follow:
+//!   `f_b = M · a_b / (T · h)`, and the cumulative sums are running sums of the counts;
+//! * the sums of the counts over groups of [`GROUP_BINS`] bins (`u16`: a group sum is at most
+//!   `T`), the first level of the lower bounds of [`super::prune`].
+//!
+//! Vector channels (ShapeDNA) are kept as `f64` vectors; a channel a shape lacks is marked
+//! absent. 256 bins × 6 channels cost 3 072 bytes of counts, 96 bytes of group sums and 48
+//! bytes of masses per shape: the three `f64` arrays per bin they replace cost 36 864.
+//!
+//! [`Encoded`] is one shape in the same encoding (a query, or a row being inserted); a
+//! [`ShapeRef`] views either.
+
+use crate::ranking::{Calibration, Prepared, PreparedChannel};
+use crate::signature::Signature;
+
+/// Sum of the quantised counts of a non-empty histogram (the largest `u16`, so that a
+/// histogram with all its mass in one bin still fits).
+pub const TOTAL: u32 = u16::MAX as u32;
+
+/// Bins per group of the bound table (the last group of a channel may be shorter).
+pub const GROUP_BINS: usize = 32;
+
+/// Where a channel's values live.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Slot {
+    /// The `k`-th histogram channel.
+    Histogram(usize),
+    /// The `k`-th vector channel.
+    Vector(usize),
+}
+
+/// The channel layout of a corpus, derived from its calibration.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Layout {
+    /// Calibration epoch.
+    pub epoch: u64,
+    /// Channel names, in the calibration's order.
+    pub names: Vec<String>,
+    /// Where each channel is stored.
+    pub slots: Vec<Slot>,
+    /// Bin width `h` of each histogram channel (indexed by histogram slot).
+    pub bin_width: Vec<f64>,
+    /// Bins per histogram.
+    pub bins: usize,
+    /// Groups per histogram (`bins / GROUP_BINS`, rounded up).
+    pub groups: usize,
+}
+
+impl Layout {
+    /// The layout of `cal`: a channel with window 0 is a vector channel (see
+    /// [`crate::ranking::calibrate_with`]), every other one a histogram of `cal.bins` bins.
+    pub fn of(cal: &Calibration) -> Layout {
+        let bins = cal.bins.max(1);
+        let (mut nh, mut nv) = (0, 0);
+        let mut bin_width = Vec::new();
+        let slots = cal
+            .window_max
+            .iter()
+            .map(|&w| {
+                if w > 0.0 {
+                    bin_width.push(w / bins as f64);
+                    nh += 1;
+                    Slot::Histogram(nh - 1)
+                } else {
+                    nv += 1;
+                    Slot::Vector(nv - 1)
+                }
+            })
+            .collect();
+        Layout {
+            epoch: cal.epoch,
+            names: cal.channel_names.clone(),
+            slots,
+            bin_width,
+            bins,
+            groups: bins.div_ceil(GROUP_BINS),
+        }
+    }
+
+    /// Number of histogram channels.
+    pub fn histograms(&self) -> usize {
+        self.bin_width.len()
+    }
+
+    /// Number of vector channels.
+    pub fn vectors(&self) -> usize {
+        self.slots.len() - self.histograms()
+    }
+
+    /// Index of the channel called `name`.
+    pub fn channel(&self, name: &str) -> Option<usize> {
+        self.names.iter().position(|n| n == name)
+    }
+
+    /// Bins in group `g`.
+    pub fn group_width(&self, g: usize) -> usize {
+        GROUP_BINS.min(self.bins - g * GROUP_BINS)
+    }
+}
+
+/// Largest-remainder quantisation of `prob` (non-negative; normalised here) to counts summing
+/// to [`TOTAL`]; all zeros when the sum is not positive. Ties of the remainders go to the lower
+/// bin.
+pub fn quantise(prob: &[f64], out: &mut [u16]) {
+    let total: f64 = prob.iter().map(|p| p.max(0.0)).sum();
+    if !(total > 0.0 && total.is_finite()) {
+        out.iter_mut().for_each(|x| *x = 0);
+        return;
+    }
+    let t = TOTAL as f64;
+    let mut frac: Vec<(f64, usize)> = Vec::with_capacity(prob.len());
+    let mut sum = 0u32;
+    for (b, (&p, o)) in prob.iter().zip(out.iter_mut()).enumerate() {
+        let x = (p.max(0.0) / total * t).min(t);
+        let f = x.floor();
+        *o = f as u16;
+        sum += f as u32;
+        frac.push((x - f, b));
+    }
+    let rem = TOTAL.saturating_sub(sum) as usize;
+    if rem > 0 {
+        frac.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        for &(_, b) in frac.iter().take(rem) {
+            out[b] += 1;
+        }
+    }
+}
+
+/// One shape in the corpus encoding (a query, or a row to insert).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Encoded {
+    /// Counts, `[histogram channel][bin]`.
+    pub hist: Vec<u16>,
+    /// Group sums of the counts, `[histogram channel][group]`.
+    pub groups: Vec<u16>,
+    /// In-window mass per histogram channel.
+    pub mass: Vec<f64>,
+    /// Per channel (layout order): whether the shape has it.
+    pub present: Vec<bool>,
+    /// Per vector channel (empty when absent).
+    pub vectors: Vec<Vec<f64>>,
+}
+
+/// A view of one shape, in the corpus or an [`Encoded`].
+#[derive(Clone, Copy, Debug)]
+pub struct ShapeRef<'a> {
+    /// Counts, `[histogram channel][bin]`.
+    pub hist: &'a [u16],
+    /// Group sums, `[histogram channel][group]`.
+    pub groups: &'a [u16],
+    /// Mass per histogram channel.
+    pub mass: &'a [f64],
+    /// Presence per channel.
+    pub present: &'a [bool],
+    /// Vectors per vector channel.
+    pub vectors: &'a [Vec<f64>],
+}
+
+impl Encoded {
+    /// An empty shape (no channel present).
+    pub fn absent(layout: &Layout) -> Encoded {
+        Encoded {
+            hist: vec![0; layout.histograms() * layout.bins],
+            groups: vec![0; layout.histograms() * layout.groups],
+            mass: vec![0.0; layout.histograms()],
+            present: vec![false; layout.names.len()],
+            vectors: vec![Vec::new(); layout.vectors()],
+        }
+    }
+
+    /// Encodes prepared histograms (`p` must come from the layout's calibration; channels are
+    /// matched by name, a channel of the wrong kind or bin count is absent).
+    pub fn from_prepared(p: &Prepared, layout: &Layout) -> Encoded {
+        let mut e = Encoded::absent(layout);
+        for (c, (name, slot)) in layout.names.iter().zip(&layout.slots).enumerate() {
+            match (p.channel(name), *slot) {
+                (Some(PreparedChannel::Histogram(h)), Slot::Histogram(k))
+                    if h.prob.len() == layout.bins =>
+                {
+                    let row = &mut e.hist[k * layout.bins..(k + 1) * layout.bins];
+                    quantise(&h.prob, row);
+                    e.mass[k] = if h.prob.iter().any(|&x| x > 0.0) {
+                        h.mass
+                    } else {
+                        0.0
+                    };
+                    e.present[c] = true;
+                }
+                (Some(PreparedChannel::Vector(v)), Slot::Vector(k)) => {
+                    e.vectors[k] = v.clone();
+                    e.present[c] = true;
+                }
+                _ => {}
+            }
+        }
+        e.fill_groups(layout);
+        e
+    }
+
+    /// Prepares and encodes a signature under `cal` (whose layout is `layout`).
+    pub fn from_signature(sig: &Signature, cal: &Calibration, layout: &Layout) -> Encoded {
+        Encoded::from_prepared(&crate::ranking::prepare_for_ranking(sig, cal), layout)
+    }
+
+    /// Recomputes the group sums from the counts (after editing `hist`).
+    pub fn fill_groups(&mut self, layout: &Layout) {
+        for k in 0..layout.histograms() {
+            let row = &self.hist[k * layout.bins..(k + 1) * layout.bins];
+            for (g, chunk) in row.chunks(GROUP_BINS).enumerate() {
+                let s: u32 = chunk.iter().map(|&x| x as u32).sum();
+                self.groups[k * layout.groups + g] = s.min(TOTAL) as u16;
+            }
+        }
+    }
+
+    /// A view.
+    pub fn view(&self) -> ShapeRef<'_> {
+        ShapeRef {
+            hist: &self.hist,
+            groups: &self.groups,
+            mass: &self.mass,
+            present: &self.present,
+            vectors: &self.vectors,
+        }
+    }
+}
+
+/// Every shape of a corpus in one layout, shape-major, positions `0..len`.
+#[derive(Clone, Debug)]
+pub struct Corpus {
+    layout: Layout,
+    len: usize,
+    hist: Vec<u16>,
+    groups: Vec<u16>,
+    mass: Vec<f64>,
+    present: Vec<bool>,
+    vectors: Vec<Vec<f64>>,
+}
+
+impl Corpus {
+    /// An empty corpus of `layout`.
+    pub fn new(layout: Layout) -> Corpus {
+        Corpus {
+            layout,
+            len: 0,
+            hist: Vec::new(),
+            groups: Vec::new(),
+            mass: Vec::new(),
+            present: Vec::new(),
+            vectors: Vec::new(),
+        }
+    }
+
+    /// An empty corpus with room for `n` shapes (allocated exactly once).
+    pub fn with_capacity(layout: Layout, n: usize) -> Corpus {
+        let mut c = Corpus::new(layout);
+        let l = &c.layout;
+        c.hist.reserve_exact(n * l.histograms() * l.bins);
+        c.groups.reserve_exact(n * l.histograms() * l.groups);
+        c.mass.reserve_exact(n * l.histograms());
+        c.present.reserve_exact(n * l.names.len());
+        c.vectors.reserve_exact(n * l.vectors());
+        c
+    }
+
+    /// A corpus of `shapes` in order.
+    pub fn build(layout: Layout, shapes: &[Encoded]) -> Corpus {
+        let mut c = Corpus::with_capacity(layout, shapes.len());
+        for e in shapes {
+            c.push(e);
+        }
+        c
+    }
+
+    /// The layout.
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// Number of shapes.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    fn strides(&self) -> [usize; 5] {
+        let l = &self.layout;
+        [
+            l.histograms() * l.bins,
+            l.histograms() * l.groups,
+            l.histograms(),
+            l.names.len(),
+            l.vectors(),
+        ]
+    }
+
+    /// The shape at `at`.
+    pub fn shape(&self, at: usize) -> ShapeRef<'_> {
+        let [h, g, m, p, v] = self.strides();
+        ShapeRef {
+            hist: &self.hist[at * h..(at + 1) * h],
+            groups: &self.groups[at * g..(at + 1) * g],
+            mass: &self.mass[at * m..(at + 1) * m],
+            present: &self.present[at * p..(at + 1) * p],
+            vectors: &self.vectors[at * v..(at + 1) * v],
+        }
+    }
+
+    /// A copy of the shape at `at`.
+    pub fn encoded(&self, at: usize) -> Encoded {
+        let s = self.shape(at);
+        Encoded {
+            hist: s.hist.to_vec(),
+            groups: s.groups.to_vec(),
+            mass: s.mass.to_vec(),
+            present: s.present.to_vec(),
+            vectors: s.vectors.to_vec(),
+        }
+    }
+
+    /// In-window mass of histogram slot `k` of the shape at `at`.
+    pub(crate) fn mass_of(&self, at: usize, k: usize) -> f64 {
+        self.mass[at * self.layout.histograms() + k]
+    }
+
+    /// Group sums of every shape (`[shape][histogram channel][group]`).
+    pub(crate) fn all_groups(&self) -> &[u16] {
+        &self.groups
+    }
+
+    fn check(&self, e: &Encoded) {
+        let [h, g, m, p, v] = self.strides();
+        assert!(
+            e.hist.len() == h
+                && e.groups.len() == g
+                && e.mass.len() == m
+                && e.present.len() == p
+                && e.vectors.len() == v,
+            "encoded shape does not match the corpus layout"
+        );
+    }
+
+    /// Appends a shape.
+    pub fn push(&mut self, e: &Encoded) {
+        self.insert(self.len, e);
+    }
+
+    /// Inserts a shape at `at` (shifting the following ones).
+    pub fn insert(&mut self, at: usize, e: &Encoded) {
+        assert!(at <= self.len, "insert position {at} > len {}", self.len);
+        self.check(e);
+        let [h, g, m, p, v] = self.strides();
+        splice(&mut self.hist, at * h, &e.hist);
+        splice(&mut self.groups, at * g, &e.groups);
+        splice(&mut self.mass, at * m, &e.mass);
+        splice(&mut self.present, at * p, &e.present);
+        splice(&mut self.vectors, at * v, &e.vectors);
+        self.len += 1;
+    }
+
+    /// Replaces the shape at `at`.
+    pub fn replace(&mut self, at: usize, e: &Encoded) {
+        assert!(at < self.len, "replace position {at} >= len {}", self.len);
+        self.check(e);
+        let [h, g, m, p, v] = self.strides();
+        self.hist[at * h..(at + 1) * h].copy_from_slice(&e.hist);
+        self.groups[at * g..(at + 1) * g].copy_from_slice(&e.groups);
+        self.mass[at * m..(at + 1) * m].copy_from_slice(&e.mass);
+        self.present[at * p..(at + 1) * p].copy_from_slice(&e.present);
+        self.vectors[at * v..(at + 1) * v].clone_from_slice(&e.vectors);
+    }
+
+    /// Removes the shape at `at`.
+    pub fn remove(&mut self, at: usize) {
+        assert!(at < self.len, "remove position {at} >= len {}", self.len);
+        let [h, g, m, p, v] = self.strides();
+        self.hist.drain(at * h..(at + 1) * h);
+        self.groups.drain(at * g..(at + 1) * g);
+        self.mass.drain(at * m..(at + 1) * m);
+        self.present.drain(at * p..(at + 1) * p);
+        self.vectors.drain(at * v..(at + 1) * v);
+        self.len -= 1;
+    }
+
+    /// Heap bytes held (capacity of the arrays, vectors' contents included).
+    pub fn heap_bytes(&self) -> usize {
+        self.hist.capacity() * 2
+            + self.groups.capacity() * 2
+            + self.mass.capacity() * 8
+            + self.present.capacity()
+            + self.vectors.capacity() * std::mem::size_of::<Vec<f64>>()
+            + self.vectors.iter().map(|v| v.capacity() * 8).sum::<usize>()
+    }
+}
+
+/// Inserts `items` at `at`, appending without a temporary when `at` is the end.
+fn splice<T: Clone>(v: &mut Vec<T>, at: usize, items: &[T]) {
+    if at == v.len() {
+        v.extend_from_slice(items);
+    } else {
+        v.splice(at..at, items.iter().cloned());
+    }
+}

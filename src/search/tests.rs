@@ -1,0 +1,351 @@
+//! Tests of [`crate::search`] (`cargo test --release --lib search`).
+
+use super::corpus::{quantise, Slot, GROUP_BINS, TOTAL};
+use super::prune::{channel_bound, search, with_margin};
+use super::score::histogram;
+use super::*;
+use crate::ranking::{
+    histogram_dissimilarity, histogram_from_mass, Calibration, Dissimilarity, Histogram, Prepared,
+    PreparedChannel, QuerySpec,
+};
+use crate::signature::Aggregation;
+use proptest::prelude::*;
+
+fn hist(mass: &[f64], width: f64) -> Histogram {
+    histogram_from_mass(mass.to_vec(), width)
+}
+
+fn layout(names: &[&str], bins: usize, window: f64) -> Layout {
+    Layout::of(&Calibration {
+        epoch: 1,
+        spec_key: String::new(),
+        channel_names: names.iter().map(|s| s.to_string()).collect(),
+        window_max: vec![window; names.len()],
+        bins,
+        bandwidth_bins: 1.0,
+        percentile: 0.95,
+        shapes: 0,
+    })
+}
+
+fn prepared(names: &[&str], channels: Vec<Option<PreparedChannel>>) -> Prepared {
+    Prepared {
+        epoch: 1,
+        names: names.iter().map(|s| s.to_string()).collect(),
+        channels,
+    }
+}
+
+fn spec(channels: &[&str], d: Dissimilarity, a: Aggregation) -> QuerySpec {
+    QuerySpec {
+        channels: channels.iter().map(|s| s.to_string()).collect(),
+        dissimilarity: d,
+        aggregation: a,
+    }
+}
+
+const AGGREGATIONS: [Aggregation; 4] = [
+    Aggregation::Single,
+    Aggregation::Sum,
+    Aggregation::Sum2,
+    Aggregation::Max,
+];
+
+/// Masses with many exact zeros (empty bins are where KL, χ² and Bhattacharyya are delicate).
+fn masses(bins: usize) -> impl Strategy<Value = Vec<f64>> {
+    prop::collection::vec(
+        prop_oneof![Just(0.0), 0.0..1.0f64, 0.0..1e-6f64, 1.0..100.0f64],
+        bins,
+    )
+}
+
+/// One encoded single-channel histogram and its group sums.
+fn encode(mass: &[f64], width: f64) -> Encoded {
+    let l = layout(&["a"], mass.len(), width * mass.len() as f64);
+    let p = prepared(
+        &["a"],
+        vec![Some(PreparedChannel::Histogram(hist(mass, width)))],
+    );
+    Encoded::from_prepared(&p, &l)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(400))]
+
+    /// Quantised counts sum to `T` (or are all zero) and each is within one unit of `p·T`.
+    #[test]
+    fn quantisation_is_exact_in_sum(m in (1usize..300).prop_flat_map(masses)) {
+        let h = hist(&m, 1.0);
+        let mut out = vec![0u16; m.len()];
+        quantise(&h.prob, &mut out);
+        let sum: u32 = out.iter().map(|&x| x as u32).sum();
+        let total: f64 = m.iter().sum();
+        if total > 0.0 {
+            prop_assert_eq!(sum, TOTAL);
+            for (&c, &p) in out.iter().zip(&h.prob) {
+                prop_assert!((c as f64 - p * TOTAL as f64).abs() < 1.0);
+            }
+        } else {
+            prop_assert_eq!(sum, 0);
+        }
+    }
+
+    /// Every bound is below the exact dissimilarity of the same counts, for all nine.
+    #[test]
+    fn bound_never_exceeds_exact(
+        (a, b) in (1usize..200).prop_flat_map(|n| (masses(n), masses(n))),
+        width in prop_oneof![Just(1e-4), 1e-3..2.0f64],
+    ) {
+        let (ea, eb) = (encode(&a, width), encode(&b, width));
+        for d in Dissimilarity::all() {
+            let exact = histogram(d, &ea.hist, ea.mass[0], &eb.hist, eb.mass[0], width);
+            let bound = with_margin(channel_bound(
+                d, &ea.groups, ea.mass[0], &eb.groups, eb.mass[0], width, a.len(),
+            ));
+            prop_assert!(bound >= 0.0);
+            prop_assert!(bound <= exact, "{d:?}: bound {bound} > exact {exact}");
+        }
+    }
+
+    /// The stated tolerance against the `f64` histograms holds for nL1, L1 and EMD.
+    #[test]
+    fn scores_within_the_stated_tolerance(
+        (a, b) in (1usize..300).prop_flat_map(|n| (masses(n), masses(n))),
+        width in 1e-3..2.0f64,
+    ) {
+        let n = a.len() as f64;
+        let t = TOTAL as f64;
+        let (ha, hb) = (hist(&a, width), hist(&b, width));
+        let (ea, eb) = (encode(&a, width), encode(&b, width));
+        let q = |d| histogram(d, &ea.hist, ea.mass[0], &eb.hist, eb.mass[0], width);
+        let f = |d| histogram_dissimilarity(d, &ha, &hb);
+        let tol = 1e-9 * (1.0 + f(Dissimilarity::L1));
+        prop_assert!((q(Dissimilarity::NL1) - f(Dissimilarity::NL1)).abs() <= 2.0 * n / t + 1e-12);
+        prop_assert!((q(Dissimilarity::Emd) - f(Dissimilarity::Emd)).abs() <= n * n * width / t + 1e-12);
+        prop_assert!(
+            (q(Dissimilarity::L1) - f(Dissimilarity::L1)).abs()
+                <= (ea.mass[0] + eb.mass[0]) * n / t + tol
+        );
+    }
+
+    /// The pruned top-k equals the head of the full ranking filtered by `keep`, bit for bit,
+    /// with ties (duplicated shapes), filters, and every dissimilarity and aggregation.
+    #[test]
+    fn top_k_equals_full_ranking(
+        base in prop::collection::vec((masses(70), masses(70)), 1..12),
+        picks in prop::collection::vec(0usize..1000, 1..80),
+        drop in prop::collection::vec(any::<bool>(), 80),
+        k in 1usize..30,
+        d in 0usize..9,
+        agg in 0usize..4,
+        query in 0usize..1000,
+        first_batch in 1usize..6,
+    ) {
+        let l = layout(&["t1", "t2"], 70, 3.5);
+        let shapes: Vec<Encoded> = base
+            .iter()
+            .map(|(x, y)| {
+                Encoded::from_prepared(&prepared(
+                    &["t1", "t2"],
+                    vec![
+                        Some(PreparedChannel::Histogram(hist(x, 0.05))),
+                        Some(PreparedChannel::Histogram(hist(y, 0.05))),
+                    ],
+                ), &l)
+            })
+            .collect();
+        let rows: Vec<Encoded> = picks.iter().map(|&i| shapes[i % shapes.len()].clone()).collect();
+        let corpus = Corpus::build(l, &rows);
+        let q = Query::new(
+            &spec(&["t2", "t1"], Dissimilarity::all()[d], AGGREGATIONS[agg]),
+            corpus.layout(),
+        );
+        let query = &shapes[query % shapes.len()];
+        let keep = |i: usize| !drop[i];
+        let expected: Vec<(usize, f64)> = rank_all(&corpus, &q, query.view())
+            .into_iter()
+            .filter(|&(i, _)| keep(i))
+            .take(k)
+            .collect();
+        let (got, _) = search(&corpus, &q, query.view(), k, &keep, first_batch);
+        prop_assert_eq!(got.len(), expected.len());
+        for (g, e) in got.iter().zip(&expected) {
+            prop_assert_eq!(g.0, e.0);
+            prop_assert_eq!(g.1.to_bits(), e.1.to_bits());
+        }
+    }
+}
+
+/// The bounds are tight where they can be: with each histogram in one bin of a different
+/// group, nL1, L1, χ² and Bhattacharyya bounds equal the exact scores, so a bound raised by any
+/// factor above 1 (a loosened proof) fails `bound_never_exceeds_exact` on such inputs.
+#[test]
+fn a_raised_bound_fails() {
+    let mut a = vec![0.0; 64];
+    let mut b = vec![0.0; 64];
+    a[3] = 2.0;
+    b[40] = 1.0;
+    let (ea, eb) = (encode(&a, 0.1), encode(&b, 0.1));
+    for d in [
+        Dissimilarity::NL1,
+        Dissimilarity::L1,
+        Dissimilarity::Chi2,
+        Dissimilarity::Bhattacharyya,
+    ] {
+        let exact = histogram(d, &ea.hist, ea.mass[0], &eb.hist, eb.mass[0], 0.1);
+        let bound = channel_bound(d, &ea.groups, ea.mass[0], &eb.groups, eb.mass[0], 0.1, 64);
+        assert_eq!(bound, exact, "{d:?}");
+        assert!(with_margin(bound) <= exact);
+        assert!(bound * 1.001 > exact, "{d:?}: a raised bound would pass");
+    }
+}
+
+/// Shapes the bounds cannot use (a missing channel, a vector channel) are still ranked exactly.
+#[test]
+fn unbounded_candidates_are_ranked_exactly() {
+    let mut cal_layout = layout(&["a", "b", "v"], 9, 0.9);
+    cal_layout.slots[2] = Slot::Vector(0);
+    cal_layout.bin_width.pop();
+    let l = cal_layout;
+    let h = |m: &[f64]| Some(PreparedChannel::Histogram(hist(m, 0.1)));
+    let v = |x: f64| Some(PreparedChannel::Vector(vec![x, 1.0]));
+    let base = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0];
+    let shifted = [9.0, 8.0, 7.0, 6.0, 5.0, 4.0, 3.0, 2.0, 1.0];
+    let rows: Vec<Encoded> = [
+        prepared(&["a", "b", "v"], vec![h(&shifted), h(&shifted), v(1.0)]),
+        prepared(&["a", "b", "v"], vec![h(&base), None, v(2.0)]), // missing channel → ∞
+        prepared(&["a", "b", "v"], vec![h(&base), h(&base), None]),
+        prepared(&["a", "b", "v"], vec![h(&base[..5]), h(&base), v(0.0)]), // other bin count
+        prepared(&["a", "b", "v"], vec![h(&base), h(&base), v(3.0)]),
+    ]
+    .iter()
+    .map(|p| Encoded::from_prepared(p, &l))
+    .collect();
+    let corpus = Corpus::build(l.clone(), &rows);
+    let query = Encoded::from_prepared(
+        &prepared(&["a", "b", "v"], vec![h(&base), h(&base), v(1.5)]),
+        &l,
+    );
+    for chans in [&["a", "b"][..], &["a", "v"], &["v", "b"]] {
+        for d in Dissimilarity::all() {
+            for agg in AGGREGATIONS {
+                let q = Query::new(&spec(chans, d, agg), corpus.layout());
+                let expected = rank_all(&corpus, &q, query.view());
+                for k in 1..=rows.len() {
+                    let (got, _) = search(&corpus, &q, query.view(), k, &|_| true, 1);
+                    assert_eq!(got, expected[..k].to_vec(), "{chans:?} {d:?} {agg:?} k={k}");
+                }
+            }
+        }
+    }
+}
+
+/// Inserting, replacing and removing keep the corpus equal to one built from scratch.
+#[test]
+fn edits_match_a_rebuilt_corpus() {
+    let l = layout(&["a"], 20, 2.0);
+    let p = |s: f64| {
+        Encoded::from_prepared(
+            &prepared(
+                &["a"],
+                vec![Some(PreparedChannel::Histogram(hist(
+                    &(0..20)
+                        .map(|i| (i as f64 * s).sin().abs())
+                        .collect::<Vec<_>>(),
+                    0.1,
+                )))],
+            ),
+            &l,
+        )
+    };
+    let mut arr = vec![Encoded::absent(&l)];
+    let mut c = Corpus::build(l.clone(), &arr);
+    for (at, s) in [(1, 0.3), (0, 0.5), (1, 0.7), (3, 0.9)] {
+        arr.insert(at, p(s));
+        c.insert(at, &p(s));
+    }
+    arr[2] = p(1.1);
+    c.replace(2, &p(1.1));
+    arr.remove(0);
+    c.remove(0);
+    let rebuilt = Corpus::build(l, &arr);
+    assert_eq!(c.len(), arr.len());
+    for i in 0..arr.len() {
+        assert_eq!(c.encoded(i), rebuilt.encoded(i));
+        assert_eq!(c.encoded(i), arr[i]);
+    }
+}
+
+/// On clustered data the scan scores only a fraction of the candidates exactly.
+#[test]
+fn clustered_candidates_are_pruned() {
+    let bump = |c: f64, s: f64| -> Vec<f64> {
+        (0..256)
+            .map(|i| (-((i as f64 - c) / s).powi(2)).exp())
+            .collect()
+    };
+    let l = layout(&["a"], 256, 2.56);
+    let rows: Vec<Encoded> = (0..4000)
+        .map(|i| {
+            let c = 20.0 + (i % 200) as f64;
+            Encoded::from_prepared(
+                &prepared(
+                    &["a"],
+                    vec![Some(PreparedChannel::Histogram(hist(&bump(c, 8.0), 0.01)))],
+                ),
+                &l,
+            )
+        })
+        .collect();
+    let corpus = Corpus::build(l, &rows);
+    let q = Query::new(
+        &spec(&["a"], Dissimilarity::NL1, Aggregation::Sum),
+        corpus.layout(),
+    );
+    let (got, scored) = top_k(&corpus, &q, corpus.shape(57), 10, &|_| true);
+    let expected: Vec<(usize, f64)> = rank_all(&corpus, &q, corpus.shape(57))[..10].to_vec();
+    assert_eq!(got, expected);
+    assert!(scored < 1000, "scored {scored} of 4000");
+    assert_eq!(GROUP_BINS, 32);
+}
+
+/// Stages in the configuration form read what they wrote; `none` entries of a list are
+/// skipped; the request form resolves defaults and refuses out-of-range values.
+#[test]
+fn stage_forms() {
+    let list: Vec<Stage> = stage::deserialize_list(&mut serde_json::Deserializer::from_str(
+        r#"[{"kind": "none"}, {"kind": "reciprocal", "shortlist": 50, "neighbourhoods": [8], "expansion": 4, "original_weight": 0.1}]"#,
+    ))
+    .unwrap();
+    assert_eq!(list.len(), 1);
+    assert_eq!(list[0].shortlist(), 50);
+    let back: Stage = serde_json::from_value(serde_json::to_value(&list[0]).unwrap()).unwrap();
+    assert_eq!(back, list[0]);
+    let q = spec(&["a"], Dissimilarity::NL1, Aggregation::Sum);
+    let resolve = |v: serde_json::Value| {
+        let r: StageRequest = serde_json::from_value(v).unwrap();
+        r.resolve(10, 100, &|_| Ok(q.clone()))
+    };
+    assert_eq!(
+        resolve(serde_json::json!({"stage": "exact"})).unwrap(),
+        Stage::Exact {
+            shortlist: 40,
+            query: q.clone()
+        }
+    );
+    assert_eq!(
+        resolve(serde_json::json!({"stage": "reciprocal"}))
+            .unwrap()
+            .shortlist(),
+        200
+    );
+    for bad in [
+        serde_json::json!({"stage": "exact", "shortlist": 101}),
+        serde_json::json!({"stage": "spectral_gw", "shortlist": 201}),
+        serde_json::json!({"stage": "spectral_gw", "eps_rel": 2.0}),
+        serde_json::json!({"stage": "reciprocal", "expansion": 0}),
+        serde_json::json!({"stage": "reciprocal", "shortlist": 1001}),
+    ] {
+        assert!(resolve(bad.clone()).is_err(), "{bad}");
+    }
+}
