@@ -50,7 +50,7 @@ pub struct ShapeRecord {
     pub tags: Vec<String>,
     /// Source format name (`obj`, `glb`, ...).
     pub format: String,
-    /// MIME type the original is served with.
+    /// MIME type of the original's format (the download itself is `application/octet-stream`).
     pub content_type: String,
     /// Size of the original upload in bytes.
     pub bytes: u64,

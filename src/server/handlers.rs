@@ -289,11 +289,14 @@ pub async fn get_mesh(State(app): AppState, Path(id): Path<String>) -> Result<Re
         .mesh(&id)
         .map_err(ApiError::internal)?
         .ok_or_else(|| ApiError::not_found(&id))?;
+    // Always octet-stream (the record's `format`/`content_type` name the format): a format type
+    // such as `model/gltf+json` would make clients parse the download as JSON.
     let mut resp = bytes.into_response();
     let h = resp.headers_mut();
-    if let Ok(v) = HeaderValue::from_str(&rec.content_type) {
-        h.insert(header::CONTENT_TYPE, v);
-    }
+    h.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/octet-stream"),
+    );
     if let Ok(v) = HeaderValue::from_str(&format!(
         "attachment; filename=\"{}.{}\"",
         rec.id, rec.format
@@ -479,7 +482,23 @@ pub async fn metrics(State(app): AppState) -> Response {
 /// The OpenAPI document (`api/openapi.yaml`, compiled in).
 pub const OPENAPI_YAML: &str = include_str!("../../api/openapi.yaml");
 
-/// `GET /openapi.yaml`.
-pub async fn openapi() -> Response {
-    ([(header::CONTENT_TYPE, "application/yaml")], OPENAPI_YAML).into_response()
+/// `GET /openapi.yaml`: `application/yaml`, or `text/plain` when the `Accept` header names
+/// `text/plain` (or `text/*`) but not `application/yaml` (both are declared in the document).
+pub async fn openapi(headers: HeaderMap) -> Response {
+    let accept = headers
+        .get(header::ACCEPT)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let names = |t: &str| {
+        accept
+            .split(',')
+            .any(|r| r.split(';').next().unwrap_or("").trim() == t)
+    };
+    let ct = if !names("application/yaml") && (names("text/plain") || names("text/*")) {
+        "text/plain; charset=utf-8"
+    } else {
+        "application/yaml"
+    };
+    ([(header::CONTENT_TYPE, ct)], OPENAPI_YAML).into_response()
 }
