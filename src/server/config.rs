@@ -22,6 +22,19 @@ pub struct ServerConfig {
     pub max_faces: usize,
     /// Per-request time limit, seconds (503 `request.timeout` past it).
     pub request_timeout_secs: f64,
+    /// Connections served at once; a connection over the cap gets 503 `server.busy` and is
+    /// closed. Keep it below the process's open-file limit.
+    pub max_connections: usize,
+    /// Seconds a client has to send a complete request head; also how long an idle keep-alive
+    /// connection is kept. Past it the connection is closed.
+    pub header_read_timeout_secs: f64,
+    /// Seconds a client has to send a whole request body once its head arrived (408
+    /// `request.body_timeout` past it).
+    pub body_read_timeout_secs: f64,
+    /// Request body bytes held in memory at once over all connections; a body that does not
+    /// fit (its `Content-Length`, or `max_body_bytes` when unannounced) gets 503 `server.busy`.
+    /// At least `max_body_bytes`.
+    pub max_inflight_body_bytes: usize,
     /// CPU jobs (analysis + signature) run at once; 0 = number of cores.
     pub workers: usize,
     /// CPU jobs allowed to wait for a worker; more get 503 `server.busy`.
@@ -51,6 +64,10 @@ impl Default for ServerConfig {
             max_vertices: 500_000,
             max_faces: 1_000_000,
             request_timeout_secs: 120.0,
+            max_connections: 512,
+            header_read_timeout_secs: 10.0,
+            body_read_timeout_secs: 60.0,
+            max_inflight_body_bytes: 256 << 20,
             workers: 0,
             queue_capacity: 16,
             retry_after_secs: 2,
@@ -131,6 +148,24 @@ impl ServerConfig {
         }
         if !(self.request_timeout_secs.is_finite() && self.request_timeout_secs > 0.0) {
             return bad("request_timeout_secs must be > 0");
+        }
+        for (name, v) in [
+            ("header_read_timeout_secs", self.header_read_timeout_secs),
+            ("body_read_timeout_secs", self.body_read_timeout_secs),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
+                return bad(&format!("{name} must be in (0, 86400]"));
+            }
+        }
+        if self.max_connections == 0 {
+            return bad("max_connections must be > 0");
+        }
+        if self.max_inflight_body_bytes < self.max_body_bytes {
+            return bad(&format!(
+                "max_inflight_body_bytes ({}) must be at least max_body_bytes ({}): a \
+                 maximum-size upload could never be admitted",
+                self.max_inflight_body_bytes, self.max_body_bytes
+            ));
         }
         if !(self.shutdown_grace_secs.is_finite() && self.shutdown_grace_secs >= 0.0) {
             return bad("shutdown_grace_secs must be >= 0");

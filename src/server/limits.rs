@@ -82,3 +82,141 @@ impl Drop for QueuedGuard {
         self.0.queued.fetch_sub(1, Ordering::Relaxed);
     }
 }
+
+/// Admission of request bodies: a size check on the announced `Content-Length` before any
+/// byte is read, a budget of body bytes held in memory over all requests, and a deadline for
+/// reading a body.
+///
+/// The body is read here, whole, under the budget and the deadline, and handed to the handler
+/// as a complete buffer; the budget is released when the response is ready. So the memory held
+/// by bodies is bounded by `max_inflight_body_bytes` whatever the number of connections, and a
+/// client trickling its body holds a connection for at most `body_read_timeout`. An announced
+/// size over the limit is refused with 413 before hyper sends `100 Continue` (it sends it only
+/// when the body is first read).
+pub struct BodyGate {
+    /// Largest body, bytes.
+    pub max_body_bytes: usize,
+    /// Time to read a whole body.
+    pub read_timeout: std::time::Duration,
+    /// `Retry-After` seconds of a 503.
+    pub retry_after: u64,
+    /// Budget in KiB (a semaphore takes at most `u32::MAX` permits at once).
+    budget_kib: Arc<Semaphore>,
+}
+
+impl BodyGate {
+    /// A gate admitting bodies up to `max_body_bytes`, `max_inflight_bytes` in all.
+    pub fn new(
+        max_body_bytes: usize,
+        max_inflight_bytes: usize,
+        read_timeout: std::time::Duration,
+        retry_after: u64,
+    ) -> Self {
+        Self {
+            max_body_bytes,
+            read_timeout,
+            retry_after,
+            budget_kib: Arc::new(Semaphore::new(kib(max_inflight_bytes) as usize)),
+        }
+    }
+
+    /// KiB of the budget free now.
+    pub fn available_kib(&self) -> usize {
+        self.budget_kib.available_permits()
+    }
+}
+
+fn kib(bytes: usize) -> u32 {
+    bytes.div_ceil(1024).min(u32::MAX as usize) as u32
+}
+
+/// The body layer (see [`BodyGate`]).
+pub async fn admit_body(
+    axum::extract::State(gate): axum::extract::State<Arc<BodyGate>>,
+    req: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> axum::response::Response {
+    use axum::http::{header, StatusCode};
+    use axum::response::IntoResponse;
+    let close = |e: ApiError| {
+        let mut r = e.into_response();
+        r.headers_mut().insert(
+            header::CONNECTION,
+            axum::http::HeaderValue::from_static("close"),
+        );
+        r
+    };
+    let declared = match req.headers().get(header::CONTENT_LENGTH) {
+        None => None,
+        Some(v) => match v.to_str().ok().and_then(|s| s.trim().parse::<u64>().ok()) {
+            Some(n) => Some(n),
+            None => return close(ApiError::invalid("Content-Length is not a number")),
+        },
+    };
+    let chunked = req.headers().contains_key(header::TRANSFER_ENCODING);
+    if declared.is_none() && !chunked {
+        return next.run(req).await;
+    }
+    if let Some(n) = declared {
+        if n > gate.max_body_bytes as u64 {
+            return close(ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "limit.bytes",
+                format!(
+                    "the request body announces {n} bytes; the limit is {} bytes",
+                    gate.max_body_bytes
+                ),
+            ));
+        }
+        if n == 0 {
+            return next.run(req).await;
+        }
+    }
+    let reserve = declared.map_or(gate.max_body_bytes, |n| n as usize);
+    let Ok(permit) = gate.budget_kib.clone().try_acquire_many_owned(kib(reserve)) else {
+        metrics::counter!("shapeseek_bodies_refused_total").increment(1);
+        let mut e = ApiError::busy(gate.retry_after);
+        e.detail = "too many request bodies in flight; retry later".into();
+        return e.into_response();
+    };
+    let (parts, body) = req.into_parts();
+    let read = tokio::time::timeout(
+        gate.read_timeout,
+        axum::body::to_bytes(body, gate.max_body_bytes),
+    )
+    .await;
+    let bytes = match read {
+        Ok(Ok(b)) => b,
+        Ok(Err(e)) => {
+            let too_big = std::error::Error::source(&e)
+                .is_some_and(|s| s.is::<http_body_util::LengthLimitError>());
+            return close(if too_big {
+                ApiError::new(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    "limit.bytes",
+                    format!("the request body exceeds {} bytes", gate.max_body_bytes),
+                )
+            } else {
+                ApiError::invalid(format!("the request body could not be read: {e}"))
+            });
+        }
+        Err(_) => {
+            return close(ApiError::new(
+                StatusCode::REQUEST_TIMEOUT,
+                "request.body_timeout",
+                format!(
+                    "the request body was not received within {:.0} s",
+                    gate.read_timeout.as_secs_f64()
+                ),
+            ))
+        }
+    };
+    let resp = next
+        .run(axum::extract::Request::from_parts(
+            parts,
+            axum::body::Body::from(bytes),
+        ))
+        .await;
+    drop(permit);
+    resp
+}

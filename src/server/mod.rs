@@ -13,13 +13,17 @@
 //! | GET | `/v1/index` | size, calibration epoch, specs, queue |
 //! | GET | `/healthz`, `/readyz`, `/metrics`, `/openapi.yaml` | operations |
 //!
-//! Layers (outside in): request id → trace → metrics → panic → problem+json catch-all → body
-//! limit → per-request timeout (on `/v1`) → handlers. CPU work (reading, analysis, signatures)
+//! Connections are served by [`conn::serve`] (a connection cap, a header-read timeout,
+//! problem+json for hyper's own error answers). Layers (outside in): request-id sanitiser →
+//! request id → trace → metrics → panic → problem+json catch-all → body
+//! admission ([`limits::admit_body`]: announced size, in-flight byte budget, read deadline) →
+//! body limit → per-request timeout (on `/v1`) → handlers. CPU work (reading, analysis, signatures)
 //! runs on the bounded [`limits::WorkPool`] (503 `server.busy` + `Retry-After` when full);
 //! ranking runs on rayon from a blocking thread. Configuration: [`ServerConfig`] (defaults <
 //! TOML file < `SHAPESEEK_*` environment < flags).
 
 pub mod config;
+pub mod conn;
 pub mod handlers;
 pub mod limits;
 pub mod metrics;

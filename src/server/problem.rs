@@ -52,6 +52,18 @@ impl ApiError {
         }
     }
 
+    /// The problem+json document of this error.
+    pub fn body_bytes(&self) -> Vec<u8> {
+        let body = ProblemBody {
+            ty: format!("urn:shapeseek:problem:{}", self.code),
+            title: self.title(),
+            status: self.status.as_u16(),
+            detail: &self.detail,
+            code: &self.code,
+        };
+        serde_json::to_vec(&body).unwrap_or_else(|_| b"{}".to_vec())
+    }
+
     /// 400 `request.invalid`.
     pub fn invalid(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::BAD_REQUEST, "request.invalid", detail)
@@ -130,14 +142,7 @@ impl From<crate::Error> for ApiError {
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        let body = ProblemBody {
-            ty: format!("urn:shapeseek:problem:{}", self.code),
-            title: self.title(),
-            status: self.status.as_u16(),
-            detail: &self.detail,
-            code: &self.code,
-        };
-        let bytes = serde_json::to_vec(&body).unwrap_or_else(|_| b"{}".to_vec());
+        let bytes = self.body_bytes();
         let mut resp = (self.status, bytes).into_response();
         resp.headers_mut()
             .insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));

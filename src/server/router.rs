@@ -1,7 +1,9 @@
 //! Router, middleware and the server lifecycle.
 
 use super::config::ServerConfig;
+use super::conn::ConnLimits;
 use super::handlers as h;
+use super::limits::{admit_body, BodyGate};
 use super::problem::{code_for_status, ApiError, PROBLEM_JSON};
 use super::state::App;
 use crate::Result;
@@ -39,6 +41,15 @@ pub fn router(app: Arc<App>) -> Router {
         .route("/openapi.yaml", get(h::openapi))
         .fallback(fallback)
         .layer(DefaultBodyLimit::max(app.cfg.max_body_bytes))
+        .layer(middleware::from_fn_with_state(
+            Arc::new(BodyGate::new(
+                app.cfg.max_body_bytes,
+                app.cfg.max_inflight_body_bytes,
+                Duration::from_secs_f64(app.cfg.body_read_timeout_secs),
+                app.cfg.retry_after_secs,
+            )),
+            admit_body,
+        ))
         .layer(middleware::map_response(problem_catch_all))
         .layer(tower_http::catch_panic::CatchPanicLayer::custom(panic_to_problem))
         .layer(middleware::from_fn(metrics_mw))
@@ -53,6 +64,7 @@ pub fn router(app: Arc<App>) -> Router {
         .on_response(tower_http::trace::DefaultOnResponse::new().level(tracing::Level::INFO)))
         .layer(PropagateRequestIdLayer::x_request_id())
         .layer(SetRequestIdLayer::x_request_id(Counter::default()))
+        .layer(middleware::map_request(drop_unsafe_request_id))
         .with_state(app)
 }
 
@@ -66,6 +78,27 @@ impl MakeRequestId for Counter {
             .ok()
             .map(RequestId::new)
     }
+}
+
+/// Longest client `X-Request-Id` kept (longer ones are replaced by a generated id).
+pub const MAX_REQUEST_ID_LEN: usize = 64;
+
+/// Removes a client `X-Request-Id` that is too long or has characters other than ASCII
+/// letters, digits and `-_.:`, so that a generated one takes its place: ids end up in logs and
+/// response headers and must not carry arbitrary bytes or sizes.
+async fn drop_unsafe_request_id(mut req: Request) -> Request {
+    let unsafe_id = req.headers().get_all("x-request-id").iter().any(|v| {
+        let b = v.as_bytes();
+        b.is_empty()
+            || b.len() > MAX_REQUEST_ID_LEN
+            || !b
+                .iter()
+                .all(|c| c.is_ascii_alphanumeric() || b"-_.:".contains(c))
+    });
+    if unsafe_id || req.headers().get_all("x-request-id").iter().count() > 1 {
+        req.headers_mut().remove("x-request-id");
+    }
+    req
 }
 
 fn panic_to_problem(err: Box<dyn std::any::Any + Send + 'static>) -> Response {
@@ -219,12 +252,16 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
     let router = router(app.clone());
     app.ready.store(true, Ordering::Release);
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let limits = ConnLimits {
+        max_connections: app.cfg.max_connections,
+        header_read_timeout: Duration::from_secs_f64(app.cfg.header_read_timeout_secs),
+        retry_after_secs: app.cfg.retry_after_secs,
+    };
     let join = tokio::spawn(async move {
-        axum::serve(listener, router.into_make_service())
-            .with_graceful_shutdown(async move {
-                let _ = stopped.await;
-            })
-            .await
+        super::conn::serve(listener, router, limits, async move {
+            let _ = stopped.await;
+        })
+        .await
     });
     let lifecycle: Arc<dyn Lifecycle> = app;
     Ok(Running {
