@@ -41,6 +41,7 @@ pub fn router<E: Engine>(app: Arc<App<E>>) -> Router {
         .route("/readyz", get(h::readyz::<E>))
         .route("/metrics", get(h::metrics::<E>))
         .route("/openapi.yaml", get(h::openapi))
+        .merge(super::web::routes())
         .fallback(fallback)
         .layer(DefaultBodyLimit::max(app.cfg.max_body_bytes))
         .layer(middleware::map_response(problem_catch_all))
