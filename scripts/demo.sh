@@ -31,7 +31,7 @@ if curl -sf "$URL/healthz" >/dev/null 2>&1; then
   echo "something already answers on $URL: stop it or pass another address (scripts/demo.sh DATA HOST:PORT)"
   exit 1
 fi
-"$BIN" serve --data "$DATA" --addr "$ADDR" 2>"$TARGET/demo-server.log" &
+"$BIN" serve --data "$DATA" --addr "$ADDR" >"$TARGET/demo-server.log" 2>&1 &
 PID=$!
 trap 'kill $PID 2>/dev/null || true; wait $PID 2>/dev/null || true' EXIT
 for _ in $(seq 1 150); do curl -sf "$URL/readyz" >/dev/null 2>&1 && break; sleep 0.2; done

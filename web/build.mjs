@@ -9,7 +9,8 @@ import { dirname, join } from 'node:path';
 import { fileURLToPath } from 'node:url';
 
 const here = dirname(fileURLToPath(import.meta.url));
-const dist = join(here, 'dist');
+// WEB_DIST_OUT builds elsewhere (the CI check compares that build with the committed dist).
+const dist = process.env.WEB_DIST_OUT || join(here, 'dist');
 mkdirSync(dist, { recursive: true });
 await build({
   entryPoints: [join(here, 'src/app.js')],
@@ -25,4 +26,4 @@ await build({
 copyFileSync(join(here, 'src/index.html'), join(dist, 'index.html'));
 copyFileSync(join(here, 'src/style.css'), join(dist, 'style.css'));
 copyFileSync(join(here, 'node_modules/three/LICENSE'), join(dist, 'THREE-LICENSE.txt'));
-console.log('built web/dist');
+console.log(`built ${dist}`);

@@ -395,7 +395,7 @@ async function renderResults(result) {
     c.fig.addEventListener('click', (ev) => { if (ev.detail <= 1) openCompare(hit, rec); });
   });
   const t = result.timings || {};
-  setStatus(`${result.hits.length} hits of ${result.candidates} candidates · stages: scan${(result.stages || []).map((s) => ` → ${s}`).join('')}` +
+  setStatus(`${result.hits.length} hits of ${result.candidates} candidates · stages: ${(result.stages || []).join(' → ') || 'scan'}` +
     ` · ${fmtMs(t.total_ms)} ranking${t.analysis && t.analysis.total_ms ? `, ${fmtMs(t.analysis.total_ms)} analysing the upload` : ''}` +
     ' · click a hit to open it next to the query; drag any view to orbit (one camera for all)');
 }
