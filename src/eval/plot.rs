@@ -70,7 +70,7 @@ impl XAxis {
                 let mut e = min.log10().ceil() as i32;
                 while e <= 0 {
                     let v = 10f64.powi(e);
-                    let label = if e >= -2 {
+                    let label = if e >= -3 {
                         format!("{v}")
                     } else {
                         format!("1e{e}")

@@ -154,8 +154,8 @@ test('upload a mesh: the query and its hits are drawn in 3D with ranks and score
   await page.mouse.up();
   const afterOrbit = await page.evaluate(() => { window.shapeseekViewer.render(); return document.getElementById('gl').toDataURL(); });
   assert.notEqual(afterOrbit, before, 'orbiting changes the picture');
-  assert.match(await page.textContent('#status'), /hits of \d+ candidates · stages: scan → reciprocal/);
   await page.screenshot({ path: join(SHOTS, 'viewer-upload-search.png') });
+  assert.match(await page.textContent('#status'), /hits of \d+ candidates · stages: scan → reciprocal ·/);
 });
 
 test('open a hit next to the query and plot the distance distributions', async () => {
@@ -180,7 +180,7 @@ test('open a hit next to the query and plot the distance distributions', async (
     return Math.max(...ys) - Math.min(...ys);
   }));
   for (const h of heights) assert.ok(h > 50, `a distribution spans ${h} px`);
-  await page.screenshot({ path: join(SHOTS, 'viewer-compare.png'), fullPage: true });
+  await page.screenshot({ path: join(SHOTS, 'viewer-compare.png') });
   await page.check('input[name=plot-kind][value=cdf]');
   await page.waitForSelector('#plot svg[data-kind=cdf]');
   if (channels.length > 1) {
