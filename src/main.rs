@@ -37,6 +37,15 @@ enum Command {
     Eval(cli::eval::EvalArgs),
     /// Performance benchmarks (spectrum: Laplacian + factorisation + eigensolve, vs SciPy).
     Bench(bench::BenchArgs),
+    /// Write the labelled sample meshes (6 classes x 5 poses/remeshings, mixed formats) and a manifest.
+    Samples(SamplesArgs),
+}
+
+#[derive(Args)]
+struct SamplesArgs {
+    /// Output directory (created if needed).
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Args)]
@@ -266,6 +275,13 @@ fn main() -> ExitCode {
         Command::Migrate(a) => a.run().map(|msg| println!("{msg}")),
         Command::Eval(a) => cli::eval::run(a),
         Command::Bench(a) => bench::run(a),
+        Command::Samples(a) => shapeseek::mesh::samples::write_samples(&a.out).map(|s| {
+            println!(
+                "wrote {} sample meshes and manifest.csv to {}",
+                s.len(),
+                a.out.display()
+            )
+        }),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

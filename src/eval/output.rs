@@ -91,31 +91,46 @@ pub(super) fn write_curves(dir: &Path, results: &[ConfigResult]) -> Result<()> {
         );
         std::fs::write(curves.join(format!("{base}.pr.svg")), pr)?;
     }
-    // All configurations on one chart, group All.
-    let all = |pick: &dyn Fn(&metrics::GroupSummary) -> &Vec<(f64, f64)>| -> Vec<(String, Vec<(f64, f64)>)> {
+    // All configurations on one chart, group All: the default and the five best by mAP in
+    // colour, the others as grey lines; the ROC on a log false-positive axis.
+    let all = |pick: &dyn Fn(&metrics::GroupSummary) -> &Vec<(f64, f64)>| -> Vec<plot::Series> {
         results
             .iter()
-            .filter_map(|r| r.eval.group(metrics::ALL).map(|s| (r.name.clone(), pick(s).clone())))
+            .filter_map(|r| {
+                r.eval.group(metrics::ALL).map(|s| plot::Series {
+                    name: r.name.clone(),
+                    points: pick(s).clone(),
+                    score: s.map,
+                })
+            })
             .collect()
+    };
+    let default_name = crate::presets::default_config().name;
+    let overview = |x_axis, diagonal| plot::Overview {
+        default: Some(default_name.as_str()),
+        best: 5,
+        score_label: "mAP",
+        x_axis,
+        diagonal,
     };
     std::fs::write(
         dir.join("roc-all.svg"),
-        plot::line_chart(
+        plot::overview_chart(
             "Mean ROC, all queries",
-            "false positive rate",
+            "false positive rate (log scale)",
             "true positive rate",
             &all(&|s| &s.mean_roc),
-            true,
+            &overview(plot::XAxis::Log { min: 0.01 }, true),
         ),
     )?;
     std::fs::write(
         dir.join("pr-all.svg"),
-        plot::line_chart(
+        plot::overview_chart(
             "Mean precision–recall, all queries",
             "recall",
             "precision",
             &all(&|s| &s.mean_pr),
-            false,
+            &overview(plot::XAxis::Linear, false),
         ),
     )?;
     Ok(())

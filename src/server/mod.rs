@@ -30,6 +30,7 @@ pub mod metrics;
 pub mod problem;
 pub mod router;
 pub mod state;
+pub mod web;
 
 pub use config::{MigrateArgs, ServeArgs, ServerConfig};
 pub use router::{start, start_with, Running};

@@ -39,6 +39,7 @@ pub fn router(app: Arc<App>) -> Router {
         .route("/readyz", get(h::readyz))
         .route("/metrics", get(h::metrics))
         .route("/openapi.yaml", get(h::openapi))
+        .merge(super::web::routes())
         .fallback(fallback)
         .layer(DefaultBodyLimit::max(app.cfg.max_body_bytes))
         .layer(middleware::from_fn_with_state(

@@ -1,0 +1,160 @@
+//! The web viewer at `/`: a static page (HTML, CSS, one JavaScript bundle with three.js) built
+//! from `web/src` into `web/dist` by `npm run build` in `web/` and committed, then compiled into
+//! the binary here with `include_bytes!`, so a plain `cargo build` serves it with no Node.js and
+//! nothing fetched at run time. The page talks only to the same-origin API.
+//!
+//! | path | what |
+//! | --- | --- |
+//! | `/`, `/index.html` | the page |
+//! | `/assets/app.js` | the bundle (the viewer + three.js and its loaders/controls) |
+//! | `/assets/style.css` | the style sheet |
+//! | `/assets/THREE-LICENSE.txt` | three.js's licence |
+//!
+//! Responses carry a strong `ETag` (content hash) and `Cache-Control: no-cache`, so browsers
+//! revalidate cheaply (304) and never keep an old bundle after an upgrade.
+
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
+use sha2::{Digest, Sha256};
+use std::sync::OnceLock;
+
+/// One embedded file.
+pub struct Asset {
+    /// URL path.
+    pub path: &'static str,
+    /// Content type.
+    pub content_type: &'static str,
+    /// The bytes.
+    pub bytes: &'static [u8],
+}
+
+/// Every embedded file of the viewer.
+pub const ASSETS: [Asset; 4] = [
+    Asset {
+        path: "/",
+        content_type: "text/html; charset=utf-8",
+        bytes: include_bytes!("../../web/dist/index.html"),
+    },
+    Asset {
+        path: "/assets/app.js",
+        content_type: "text/javascript; charset=utf-8",
+        bytes: include_bytes!("../../web/dist/app.js"),
+    },
+    Asset {
+        path: "/assets/style.css",
+        content_type: "text/css; charset=utf-8",
+        bytes: include_bytes!("../../web/dist/style.css"),
+    },
+    Asset {
+        path: "/assets/THREE-LICENSE.txt",
+        content_type: "text/plain; charset=utf-8",
+        bytes: include_bytes!("../../web/dist/THREE-LICENSE.txt"),
+    },
+];
+
+/// Content-Security-Policy of the viewer: everything from this origin; `data:`/`blob:` for the
+/// glTF loader's embedded buffers and images.
+const CSP: &str = "default-src 'self'; script-src 'self'; style-src 'self'; \
+                   img-src 'self' data: blob:; connect-src 'self' data: blob:; \
+                   object-src 'none'; base-uri 'none'; frame-ancestors 'none'";
+
+fn etags() -> &'static [String; 4] {
+    static TAGS: OnceLock<[String; 4]> = OnceLock::new();
+    TAGS.get_or_init(|| {
+        ASSETS.each_ref().map(|a| {
+            let h = Sha256::digest(a.bytes);
+            format!("\"{}\"", hex::encode(&h[..12]))
+        })
+    })
+}
+
+fn serve(i: usize, headers: &HeaderMap) -> Response {
+    let a = &ASSETS[i];
+    let etag = &etags()[i];
+    let fresh = headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"));
+    let mut resp = if fresh {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        ([(header::CONTENT_TYPE, a.content_type)], a.bytes).into_response()
+    };
+    let h = resp.headers_mut();
+    if let Ok(v) = HeaderValue::from_str(etag) {
+        h.insert(header::ETAG, v);
+    }
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+    h.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    if i == 0 {
+        h.insert(
+            header::CONTENT_SECURITY_POLICY,
+            HeaderValue::from_static(CSP),
+        );
+    }
+    resp
+}
+
+/// The viewer's routes, merged into the API router (any state).
+pub fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
+    Router::new()
+        .route("/", get(|h: HeaderMap| async move { serve(0, &h) }))
+        .route(
+            "/index.html",
+            get(|h: HeaderMap| async move { serve(0, &h) }),
+        )
+        .route(
+            "/assets/app.js",
+            get(|h: HeaderMap| async move { serve(1, &h) }),
+        )
+        .route(
+            "/assets/style.css",
+            get(|h: HeaderMap| async move { serve(2, &h) }),
+        )
+        .route(
+            "/assets/THREE-LICENSE.txt",
+            get(|h: HeaderMap| async move { serve(3, &h) }),
+        )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_page_references_only_embedded_same_origin_assets() {
+        let html = std::str::from_utf8(ASSETS[0].bytes).unwrap();
+        for a in &ASSETS[1..3] {
+            assert!(html.contains(a.path), "index.html links {}", a.path);
+        }
+        assert!(
+            !html.contains("http://") && !html.contains("https://"),
+            "no external URL"
+        );
+        let js = std::str::from_utf8(ASSETS[1].bytes).unwrap();
+        assert!(js.len() > 100_000, "the bundle includes three.js");
+        assert!(
+            !js.contains("import(\"http") && !js.contains("from\"http"),
+            "no remote import"
+        );
+        let lic = std::str::from_utf8(ASSETS[3].bytes).unwrap();
+        assert!(lic.contains("MIT License") && lic.contains("three.js authors"));
+    }
+
+    #[test]
+    fn etag_revalidation_answers_304() {
+        let first = serve(1, &HeaderMap::new());
+        assert_eq!(first.status(), StatusCode::OK);
+        let tag = first.headers()[header::ETAG].clone();
+        let mut h = HeaderMap::new();
+        h.insert(header::IF_NONE_MATCH, tag);
+        assert_eq!(serve(1, &h).status(), StatusCode::NOT_MODIFIED);
+        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("\"other\""));
+        assert_eq!(serve(1, &h).status(), StatusCode::OK);
+    }
+}

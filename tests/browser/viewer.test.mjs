@@ -1,0 +1,237 @@
+// End-to-end tests of the web viewer: playwright-core drives Debian's chromium (headless, WebGL
+// through SwiftShader) against a live `shapeseek serve` started by scripts/browser-test.sh.
+//
+// Env: SHAPESEEK_URL (the server), SAMPLES_DIR (from `shapeseek samples`), HOLD_OUT (a sample id
+// that was not ingested: uploaded as the query), SCREENSHOT_DIR (where PNGs go), CHROMIUM
+// (default /usr/bin/chromium).
+import { test, before, after } from 'node:test';
+import assert from 'node:assert/strict';
+import { readFileSync, mkdirSync } from 'node:fs';
+import { join } from 'node:path';
+import { chromium } from 'playwright-core';
+
+const URL_ = process.env.SHAPESEEK_URL;
+const SAMPLES = process.env.SAMPLES_DIR;
+const HOLD_OUT = process.env.HOLD_OUT || 'quadruped-iso2';
+const SHOTS = process.env.SCREENSHOT_DIR;
+if (!URL_ || !SAMPLES || !SHOTS) throw new Error('run through scripts/browser-test.sh (SHAPESEEK_URL, SAMPLES_DIR, SCREENSHOT_DIR)');
+mkdirSync(SHOTS, { recursive: true });
+
+const manifest = readFileSync(join(SAMPLES, 'manifest.csv'), 'utf8').trim().split('\n').slice(1)
+  .map((l) => { const [id, path, cls] = l.split(','); return { id, path, cls }; });
+const classOf = Object.fromEntries(manifest.map((m) => [m.id, m.cls]));
+const holdOut = manifest.find((m) => m.id === HOLD_OUT);
+assert.ok(holdOut, `HOLD_OUT ${HOLD_OUT} is in the manifest`);
+
+let browser;
+let page;
+const consoleErrors = [];
+
+before(async () => {
+  browser = await chromium.launch({
+    executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
+    headless: true,
+    args: ['--no-sandbox', '--disable-gpu', '--no-first-run', '--disable-background-networking',
+      '--disable-component-update', '--disable-sync', '--use-angle=swiftshader', '--enable-unsafe-swiftshader'],
+  });
+  page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
+  page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
+  page.on('pageerror', (e) => consoleErrors.push(String(e)));
+  // The page must fetch nothing but its own origin.
+  await page.route('**/*', (route) => {
+    const u = route.request().url();
+    if (u.startsWith(URL_) || u.startsWith('data:') || u.startsWith('blob:')) return route.continue();
+    consoleErrors.push(`foreign request: ${u}`);
+    return route.abort();
+  });
+});
+
+after(async () => {
+  if (browser) await browser.close();
+});
+
+/** For each element matching `selector`: the fraction of its area where the WebGL canvas shows
+ * something other than the view background, and the mean colour of those pixels. Reads the
+ * canvas back (preserveDrawingBuffer) after forcing a frame. */
+async function viewPixels(selector) {
+  return page.evaluate((sel) => {
+    window.shapeseekViewer.render();
+    const gl = document.getElementById('gl');
+    const ratio = gl.width / gl.clientWidth;
+    const c2 = document.createElement('canvas');
+    c2.width = gl.width; c2.height = gl.height;
+    const ctx = c2.getContext('2d', { willReadFrequently: true });
+    ctx.drawImage(gl, 0, 0);
+    return [...document.querySelectorAll(sel)].map((el) => {
+      const r = el.getBoundingClientRect();
+      const x = Math.max(0, Math.floor(r.left * ratio)), y = Math.max(0, Math.floor(r.top * ratio));
+      const w = Math.min(c2.width - x, Math.floor(r.width * ratio)), h = Math.min(c2.height - y, Math.floor(r.height * ratio));
+      if (w <= 0 || h <= 0) return { fraction: 0, visible: false };
+      const d = ctx.getImageData(x, y, w, h).data;
+      let n = 0, sr = 0, sg = 0, sb = 0, bg = 0;
+      for (let i = 0; i < d.length; i += 4) {
+        // background #f7f9fc
+        const dist = Math.abs(d[i] - 0xf7) + Math.abs(d[i + 1] - 0xf9) + Math.abs(d[i + 2] - 0xfc);
+        if (d[i + 3] === 0) continue;
+        bg++;
+        if (dist > 40) { n++; sr += d[i]; sg += d[i + 1]; sb += d[i + 2]; }
+      }
+      return { visible: true, painted: bg / (w * h), fraction: n / (w * h), mean: n ? [sr / n, sg / n, sb / n] : null };
+    });
+  }, selector);
+}
+
+async function waitRendered(selector, count) {
+  await page.waitForFunction(([sel, n]) => {
+    const v = [...document.querySelectorAll(sel)];
+    return v.length >= n && v.every((e) => e.dataset.rendered === '1' || e.dataset.rendered === 'error');
+  }, [selector, count], { timeout: 120_000 });
+  const states = await page.$$eval(selector, (v) => v.map((e) => e.dataset.rendered + ':' + e.textContent));
+  assert.deepEqual(states.filter((s) => !s.startsWith('1:')), [], 'every view rendered a mesh');
+}
+
+test('the page loads from the server alone and lists the stored shapes with their tags', async () => {
+  await page.goto(URL_ + '/');
+  await page.waitForFunction(() => document.querySelectorAll('#shape-list li[data-id]').length > 0);
+  const info = await page.textContent('#index-info');
+  assert.match(info, new RegExp(`^${manifest.length - 1} stored shapes`));
+  const rows = await page.$$eval('#shape-list li[data-id]', (li) => li.map((l) => ({
+    name: l.querySelector('.name').textContent, tags: [...l.querySelectorAll('.tag')].map((t) => t.textContent) })));
+  assert.equal(rows.length, 10, 'a page holds 10 shapes');
+  for (const r of rows) assert.deepEqual(r.tags, [classOf[r.name]], `${r.name} shows its class tag`);
+  assert.equal(await page.isHidden('#error'), true);
+});
+
+test('paging: next and previous pages of the stored shapes, and the tag filter', async () => {
+  const names = () => page.$$eval('#shape-list li[data-id] .name', (n) => n.map((x) => x.textContent));
+  const first = await names();
+  await page.click('#next');
+  await page.waitForFunction(() => document.getElementById('page').textContent === 'page 2');
+  const second = await names();
+  assert.equal(second.length, 10);
+  assert.equal(second.filter((n) => first.includes(n)).length, 0, 'page 2 has other shapes');
+  await page.click('#next');
+  await page.waitForFunction(() => document.getElementById('page').textContent === 'page 3');
+  const third = await names();
+  assert.equal(third.length, manifest.length - 1 - 20, 'the last page holds the rest');
+  assert.equal(await page.isDisabled('#next'), true, 'no page after the last');
+  await page.click('#prev');
+  await page.click('#prev');
+  await page.waitForFunction(() => document.getElementById('page').textContent === 'page 1');
+  assert.deepEqual(await names(), first);
+  await page.fill('#tag-filter', 'ring');
+  await page.waitForFunction(() => [...document.querySelectorAll('#shape-list li[data-id]')].length === 5
+    && [...document.querySelectorAll('#shape-list .tag')].every((t) => t.textContent === 'ring'));
+  await page.fill('#tag-filter', '');
+  await page.waitForFunction(() => document.querySelectorAll('#shape-list li[data-id]').length === 10);
+});
+
+test('upload a mesh: the query and its hits are drawn in 3D with ranks and scores', async () => {
+  await page.setInputFiles('#file', join(SAMPLES, holdOut.path));
+  await page.waitForFunction(() => document.querySelectorAll('[data-testid=hit-card]').length > 0, null, { timeout: 120_000 });
+  const topk = Number(await page.inputValue('#topk'));
+  assert.equal(await page.locator('[data-testid=hit-card]').count(), topk);
+  await waitRendered('#grid .view', topk + 1);
+  const caps = await page.$$eval('[data-testid=hit-card] figcaption', (f) => f.map((c) => ({
+    rank: c.querySelector('.rank').textContent, name: c.children[1].textContent, score: Number(c.querySelector('.score').textContent) })));
+  caps.forEach((c, i) => assert.equal(c.rank, `#${i + 1}`));
+  for (let i = 1; i < caps.length; i++) assert.ok(caps[i].score >= caps[i - 1].score, 'scores ascend with rank');
+  // The held-out pose of a class finds its class first.
+  assert.equal(classOf[caps[0].name], holdOut.cls, `top hit ${caps[0].name} is a ${holdOut.cls}`);
+  const px = await viewPixels('#grid .view');
+  px.forEach((p, i) => {
+    assert.ok(p.visible && p.fraction > 0.03, `view ${i} shows a mesh (${(100 * p.fraction).toFixed(1)}% of its pixels)`);
+  });
+  const [q, ...hits] = px;
+  assert.ok(q.mean[2] > q.mean[0] + 20, `the query is drawn blue (${q.mean.map(Math.round)})`);
+  for (const h of hits) assert.ok(h.mean[0] > h.mean[2] + 20, `hits are drawn orange (${h.mean.map(Math.round)})`);
+  // Orbit: dragging one view turns the one camera, so every view changes.
+  const before = await page.evaluate(() => document.getElementById('gl').toDataURL());
+  const box = await page.locator('#grid .view').first().boundingBox();
+  await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+  await page.mouse.down();
+  await page.mouse.move(box.x + box.width / 2 + 80, box.y + box.height / 2 + 20, { steps: 5 });
+  await page.mouse.up();
+  const afterOrbit = await page.evaluate(() => { window.shapeseekViewer.render(); return document.getElementById('gl').toDataURL(); });
+  assert.notEqual(afterOrbit, before, 'orbiting changes the picture');
+  await page.screenshot({ path: join(SHOTS, 'viewer-upload-search.png') });
+  assert.match(await page.textContent('#status'), /hits of \d+ candidates · stages: scan → reciprocal ·/);
+});
+
+test('open a hit next to the query and plot the distance distributions', async () => {
+  // A stored query: both distributions are available.
+  const row = page.locator('#shape-list li[data-id]').filter({ hasText: 'biped-null' });
+  if (await row.count() === 0) await page.fill('#tag-filter', 'biped');
+  await page.locator('#shape-list li[data-id]').filter({ hasText: 'biped-null' }).locator('[data-testid=search-stored]').click();
+  await page.waitForFunction(() => document.querySelector('[data-testid=query-card] figcaption')?.textContent.includes('biped-null'));
+  await waitRendered('#grid .view', 9);
+  await page.locator('[data-testid=hit-card]').first().click();
+  await page.waitForSelector('#compare:not([hidden])');
+  await waitRendered('#compare .view', 2);
+  await page.waitForSelector('#plot svg path[data-series="1"]');
+  assert.equal(await page.locator('#plot svg path[data-series]').count(), 2, 'query and hit');
+  const channels = await page.$$eval('#channel option', (o) => o.map((x) => x.value));
+  assert.ok(channels.length >= 1, 'channels to choose from');
+  const px = await viewPixels('#compare .view');
+  px.forEach((p, i) => assert.ok(p.fraction > 0.03, `compare view ${i} shows a mesh`));
+  // The density curve has area ≈ 1, the CDF ends at 1: check the drawn paths are not flat.
+  const heights = await page.$$eval('#plot svg path[data-series]', (ps) => ps.map((p) => {
+    const ys = p.getAttribute('d').split(/[ML]/).filter(Boolean).map((s) => Number(s.split(',')[1]));
+    return Math.max(...ys) - Math.min(...ys);
+  }));
+  for (const h of heights) assert.ok(h > 50, `a distribution spans ${h} px`);
+  await page.screenshot({ path: join(SHOTS, 'viewer-compare.png') });
+  await page.check('input[name=plot-kind][value=cdf]');
+  await page.waitForSelector('#plot svg[data-kind=cdf]');
+  if (channels.length > 1) {
+    await page.selectOption('#channel', channels[channels.length - 1]);
+    await page.waitForFunction((c) => document.querySelector('#plot svg')?.textContent.includes(`channel ${c}`), channels[channels.length - 1]);
+  }
+  await page.click('#compare-close');
+  assert.equal(await page.isHidden('#compare'), true);
+  await page.fill('#tag-filter', '');
+});
+
+test('re-ranking stages: the scan alone, or chosen stages', async () => {
+  await page.check('[data-testid=rerank-custom]');
+  await page.locator('#shape-list li[data-id]').first().locator('[data-testid=search-stored]').click();
+  await page.waitForFunction(() => /stages: scan ·/.test(document.getElementById('status').textContent));
+  await page.check('[data-testid=st-exact]');
+  await page.locator('#shape-list li[data-id]').first().locator('[data-testid=search-stored]').click();
+  await page.waitForFunction(() => /stages: scan → exact ·/.test(document.getElementById('status').textContent));
+  await page.uncheck('[data-testid=st-exact]');
+  await page.check('[data-testid=rerank-default]');
+});
+
+test('a malformed upload shows the API\'s problem+json error', async () => {
+  await page.setInputFiles('#file', { name: 'broken.obj', mimeType: 'model/obj', buffer: Buffer.from('v 1 2 oops\nf 1 2 3\n') });
+  await page.waitForSelector('#error:not([hidden])');
+  const code = await page.getAttribute('#error', 'data-code');
+  const text = await page.textContent('#error');
+  assert.match(code, /^mesh\./, `a mesh error code (${code})`);
+  assert.match(text, /HTTP 4\d\d/);
+  assert.ok(text.includes(code));
+  assert.match(await page.textContent('#status'), /broken\.obj: not searched/);
+  await page.screenshot({ path: join(SHOTS, 'viewer-error.png') });
+});
+
+test('delete a stored shape from the list', async () => {
+  const info0 = await page.textContent('#index-info');
+  const n0 = parseInt(info0, 10);
+  const row = page.locator('#shape-list li[data-id]').first();
+  const id = await row.getAttribute('data-id');
+  await row.locator('[data-testid=delete]').click();
+  assert.equal(await row.locator('[data-testid=delete]').textContent(), 'sure?');
+  await row.locator('[data-testid=delete]').click();
+  await page.waitForFunction((i) => !document.querySelector(`#shape-list li[data-id="${i}"]`), id);
+  await page.waitForFunction((n) => parseInt(document.getElementById('index-info').textContent, 10) === n - 1, n0);
+  const resp = await page.request.get(`${URL_}/v1/shapes/${id}`);
+  assert.equal(resp.status(), 404);
+  assert.match(resp.headers()['content-type'], /problem\+json/);
+});
+
+test('no script errors and no foreign requests', () => {
+  // The malformed upload's 4xx is logged by the browser as a failed resource; nothing else.
+  const unexpected = consoleErrors.filter((e) => !/status of 4\d\d/.test(e));
+  assert.deepEqual(unexpected, []);
+});

@@ -1,0 +1,675 @@
+// shapeseek viewer: the query and its hits in 3D (three.js), distance distributions, stored
+// shapes. Talks only to the same-origin REST API (see /openapi.yaml).
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { OBJLoader } from 'three/addons/loaders/OBJLoader.js';
+import { PLYLoader } from 'three/addons/loaders/PLYLoader.js';
+import { STLLoader } from 'three/addons/loaders/STLLoader.js';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { mergeVertices } from 'three/addons/utils/BufferGeometryUtils.js';
+import { parseOff } from './off.js';
+import { distributionFromSketch, plotDistributions } from './plot.js';
+
+const $ = (id) => document.getElementById(id);
+const PAGE = 10;
+
+// ---------------------------------------------------------------------------------------------
+// API calls; every error becomes an ApiError carrying the problem+json fields.
+
+class ApiError extends Error {
+  constructor(problem) {
+    super(problem.detail || problem.title || 'request failed');
+    this.problem = problem;
+  }
+}
+
+async function api(method, path, body, headers = {}) {
+  let resp;
+  try {
+    resp = await fetch(path, { method, body, headers });
+  } catch (e) {
+    throw new ApiError({ title: 'network error', code: 'client.network', detail: String(e) });
+  }
+  if (resp.ok) return resp;
+  const ct = resp.headers.get('content-type') || '';
+  let problem;
+  if (ct.includes('json')) {
+    try { problem = await resp.json(); } catch { /* fall through */ }
+  }
+  if (!problem) problem = { title: resp.statusText, status: resp.status, detail: await resp.text().catch(() => '') };
+  problem.status = problem.status || resp.status;
+  throw new ApiError(problem);
+}
+
+const getJson = async (path) => (await api('GET', path)).json();
+const postJson = async (path, obj) =>
+  (await api('POST', path, JSON.stringify(obj), { 'content-type': 'application/json' })).json();
+
+function showError(err) {
+  const box = $('error');
+  if (!err) { box.hidden = true; box.textContent = ''; return; }
+  const p = err.problem || { title: 'error', detail: String(err && err.message || err) };
+  box.replaceChildren();
+  const strong = document.createElement('strong');
+  strong.textContent = `${p.title || 'error'}${p.status ? ` (HTTP ${p.status})` : ''}`;
+  box.append(strong);
+  if (p.code) {
+    const code = document.createElement('code');
+    code.textContent = p.code;
+    box.append(' ', code);
+  }
+  box.append(`: ${p.detail || ''}`);
+  box.dataset.code = p.code || '';
+  box.hidden = false;
+}
+
+function setStatus(text) { $('status').textContent = text; }
+
+// ---------------------------------------------------------------------------------------------
+// Mesh parsing in the browser (the server keeps the original bytes: /v1/shapes/{id}/mesh).
+
+function formatOf(name, bytes) {
+  const head = new TextDecoder().decode(bytes.slice(0, 5));
+  if (head.startsWith('glTF')) return 'glb';
+  if (head.startsWith('ply')) return 'ply';
+  if (/^(C|N|ST)?OFF/.test(head)) return 'off';
+  const ext = (name.split('.').pop() || '').toLowerCase();
+  return ['obj', 'gltf', 'glb', 'ply', 'off', 'stl'].includes(ext) ? ext : 'obj';
+}
+
+function geometriesOf(object) {
+  const out = [];
+  object.updateMatrixWorld(true);
+  object.traverse((o) => {
+    if (o.isMesh && o.geometry) {
+      const g = o.geometry.clone();
+      g.applyMatrix4(o.matrixWorld);
+      out.push(g);
+    }
+  });
+  return out;
+}
+
+function mergeAll(geoms) {
+  // Positions only, non-indexed, then welded: enough to render the surface.
+  let n = 0;
+  const parts = geoms.map((g) => (g.index ? g.toNonIndexed() : g));
+  for (const g of parts) n += g.attributes.position.count;
+  const pos = new Float32Array(n * 3);
+  let off = 0;
+  for (const g of parts) {
+    const a = g.attributes.position;
+    for (let i = 0; i < a.count; i++) {
+      pos[off++] = a.getX(i); pos[off++] = a.getY(i); pos[off++] = a.getZ(i);
+    }
+  }
+  const out = new THREE.BufferGeometry();
+  out.setAttribute('position', new THREE.BufferAttribute(pos, 3));
+  return out;
+}
+
+async function parseMesh(bytes, format) {
+  const buf = bytes.buffer.slice(bytes.byteOffset, bytes.byteOffset + bytes.byteLength);
+  let geoms;
+  switch (format) {
+    case 'obj':
+      geoms = geometriesOf(new OBJLoader().parse(new TextDecoder().decode(bytes)));
+      break;
+    case 'ply':
+      geoms = [new PLYLoader().parse(buf)];
+      break;
+    case 'stl':
+      geoms = [new STLLoader().parse(buf)];
+      break;
+    case 'off':
+      geoms = [parseOff(new TextDecoder().decode(bytes))];
+      break;
+    case 'gltf':
+    case 'glb': {
+      const gltf = await new GLTFLoader().parseAsync(format === 'glb' ? buf : new TextDecoder().decode(bytes), '');
+      geoms = geometriesOf(gltf.scene);
+      break;
+    }
+    default:
+      throw new Error(`unknown format ${format}`);
+  }
+  geoms = geoms.filter((g) => g.attributes.position && g.attributes.position.count >= 3);
+  if (!geoms.length) throw new Error('no triangles to display');
+  let g = mergeAll(geoms);
+  g.deleteAttribute('normal');
+  g = mergeVertices(g, 1e-6);
+  g.computeVertexNormals();
+  return g;
+}
+
+/** Centres on the area-free vertex mean, optionally rotates to principal axes, scales to the unit sphere. */
+function normalizeGeometry(g, align) {
+  const p = g.attributes.position;
+  const n = p.count;
+  const c = new THREE.Vector3();
+  for (let i = 0; i < n; i++) c.add(new THREE.Vector3(p.getX(i), p.getY(i), p.getZ(i)));
+  c.divideScalar(n);
+  g.translate(-c.x, -c.y, -c.z);
+  if (align) {
+    const cov = [[0, 0, 0], [0, 0, 0], [0, 0, 0]];
+    for (let i = 0; i < n; i++) {
+      const v = [p.getX(i), p.getY(i), p.getZ(i)];
+      for (let a = 0; a < 3; a++) for (let b = 0; b < 3; b++) cov[a][b] += v[a] * v[b];
+    }
+    const axes = jacobiEigenvectors(cov); // columns sorted by decreasing variance
+    // Sign convention: the third moment along each axis is positive (a stable, pose-free choice).
+    const m = new THREE.Matrix4();
+    const cols = axes.map((ax) => {
+      let s3 = 0;
+      for (let i = 0; i < n; i++) {
+        const d = p.getX(i) * ax[0] + p.getY(i) * ax[1] + p.getZ(i) * ax[2];
+        s3 += d * d * d;
+      }
+      return s3 < 0 ? ax.map((x) => -x) : ax;
+    });
+    // Right-handed: third = first × second.
+    const a0 = new THREE.Vector3(...cols[0]);
+    const a1 = new THREE.Vector3(...cols[1]);
+    const a2 = new THREE.Vector3().crossVectors(a0, a1);
+    // Longest axis along x, second along y (the view looks down -z from +z-ish).
+    m.set(a0.x, a0.y, a0.z, 0, a1.x, a1.y, a1.z, 0, a2.x, a2.y, a2.z, 0, 0, 0, 0, 1);
+    g.applyMatrix4(m);
+  }
+  g.computeBoundingSphere();
+  const r = g.boundingSphere.radius || 1;
+  g.scale(1 / r, 1 / r, 1 / r);
+  g.computeVertexNormals();
+  return g;
+}
+
+function jacobiEigenvectors(a0) {
+  const a = a0.map((r) => r.slice());
+  const v = [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
+  for (let sweep = 0; sweep < 50; sweep++) {
+    let off = 0;
+    for (let p = 0; p < 3; p++) for (let q = p + 1; q < 3; q++) off += a[p][q] * a[p][q];
+    if (off < 1e-20) break;
+    for (let p = 0; p < 3; p++) {
+      for (let q = p + 1; q < 3; q++) {
+        if (Math.abs(a[p][q]) < 1e-30) continue;
+        const theta = (a[q][q] - a[p][p]) / (2 * a[p][q]);
+        const t = Math.sign(theta || 1) / (Math.abs(theta) + Math.sqrt(theta * theta + 1));
+        const c = 1 / Math.sqrt(t * t + 1);
+        const s = t * c;
+        for (let k = 0; k < 3; k++) {
+          const akp = a[k][p], akq = a[k][q];
+          a[k][p] = c * akp - s * akq; a[k][q] = s * akp + c * akq;
+        }
+        for (let k = 0; k < 3; k++) {
+          const apk = a[p][k], aqk = a[q][k];
+          a[p][k] = c * apk - s * aqk; a[q][k] = s * apk + c * aqk;
+        }
+        for (let k = 0; k < 3; k++) {
+          const vkp = v[k][p], vkq = v[k][q];
+          v[k][p] = c * vkp - s * vkq; v[k][q] = s * vkp + c * vkq;
+        }
+      }
+    }
+  }
+  const order = [0, 1, 2].sort((i, j) => a[j][j] - a[i][i]);
+  return order.map((i) => [v[0][i], v[1][i], v[2][i]]);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Rendering: one canvas behind the page, one scene per view element, one shared camera.
+
+const canvas = $('gl');
+const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true, alpha: true });
+renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+renderer.setScissorTest(true);
+const camera = new THREE.PerspectiveCamera(35, 1, 0.05, 20);
+camera.position.set(0.6, 0.8, 3.2);
+const views = new Map(); // element -> { scene, controls }
+let dirty = true;
+
+function makeScene(geometry, color) {
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0xf7f9fc);
+  scene.add(new THREE.HemisphereLight(0xffffff, 0x8899aa, 1.3));
+  const light = new THREE.DirectionalLight(0xffffff, 2.2); // follows the camera (renderAll)
+  scene.add(light);
+  scene.userData.light = light;
+  const mat = new THREE.MeshStandardMaterial({ color, roughness: 0.6, metalness: 0.05, side: THREE.DoubleSide });
+  scene.add(new THREE.Mesh(geometry, mat));
+  return scene;
+}
+
+function attachView(el, geometry, color) {
+  detachView(el);
+  const controls = new OrbitControls(camera, el);
+  controls.enableDamping = false;
+  controls.addEventListener('change', () => { dirty = true; });
+  views.set(el, { scene: makeScene(geometry, color), controls });
+  dirty = true;
+}
+
+function detachView(el) {
+  const v = views.get(el);
+  if (!v) return;
+  v.controls.dispose();
+  v.scene.traverse((o) => { if (o.isMesh) { o.geometry.dispose(); o.material.dispose(); } });
+  views.delete(el);
+  dirty = true;
+}
+
+function renderAll() {
+  const w = canvas.clientWidth;
+  const h = canvas.clientHeight;
+  if (canvas.width !== Math.floor(w * renderer.getPixelRatio()) || canvas.height !== Math.floor(h * renderer.getPixelRatio())) {
+    renderer.setSize(w, h, false);
+  }
+  renderer.setScissor(0, 0, w, h);
+  renderer.setClearColor(0x000000, 0);
+  renderer.clear();
+  for (const [el, v] of views) {
+    if (!el.isConnected) { detachView(el); continue; }
+    const r = el.getBoundingClientRect();
+    if (r.bottom < 0 || r.top > h || r.right < 0 || r.left > w || r.width === 0) continue;
+    const bottom = h - r.bottom;
+    renderer.setViewport(r.left, bottom, r.width, r.height);
+    renderer.setScissor(r.left, bottom, r.width, r.height);
+    camera.aspect = r.width / r.height;
+    camera.updateProjectionMatrix();
+    v.scene.userData.light.position.copy(camera.position).add(camera.up.clone().multiplyScalar(0.8));
+    renderer.render(v.scene, camera);
+  }
+}
+
+function loop() {
+  if (dirty) { dirty = false; renderAll(); }
+  requestAnimationFrame(loop);
+}
+window.addEventListener('scroll', () => { dirty = true; }, { passive: true });
+window.addEventListener('resize', () => { dirty = true; });
+new ResizeObserver(() => { dirty = true; }).observe(document.body);
+requestAnimationFrame(loop);
+
+// ---------------------------------------------------------------------------------------------
+// Shapes: geometry cache by id, the cards.
+
+const geometryCache = new Map();
+
+async function loadStoredGeometry(rec) {
+  const key = `${rec.id}:${$('align').checked}`;
+  if (!geometryCache.has(key)) {
+    geometryCache.set(key, (async () => {
+      const resp = await api('GET', `/v1/shapes/${encodeURIComponent(rec.id)}/mesh`);
+      const bytes = new Uint8Array(await resp.arrayBuffer());
+      return normalizeGeometry(await parseMesh(bytes, rec.format || formatOf(rec.name || '', bytes)), $('align').checked);
+    })());
+  }
+  return (await geometryCache.get(key)).clone();
+}
+
+function note(el, text) {
+  const d = document.createElement('div');
+  d.className = 'note';
+  d.textContent = text;
+  el.replaceChildren(d);
+}
+
+function tagsEl(tags) {
+  const span = document.createElement('span');
+  for (const t of tags || []) {
+    const s = document.createElement('span');
+    s.className = 'tag';
+    s.textContent = t;
+    span.append(s);
+  }
+  return span;
+}
+
+function fmtScore(s) {
+  if (s === null || s === undefined) return '∞';
+  return Math.abs(s) >= 1000 || (Math.abs(s) < 0.01 && s !== 0) ? s.toExponential(2) : s.toFixed(4);
+}
+
+const QUERY_COLOR = 0x4f7fd9;
+const HIT_COLOR = 0xd98f4f;
+
+// The current query: { name, tags, id (stored or null), geometry promise, bytes/format for uploads }.
+let current = null;
+let lastHits = [];
+
+function makeCard(kind, caption) {
+  const fig = document.createElement('figure');
+  fig.className = `card ${kind}`;
+  const view = document.createElement('div');
+  view.className = 'view';
+  const cap = document.createElement('figcaption');
+  cap.append(...caption);
+  fig.append(view, cap);
+  return { fig, view };
+}
+
+async function fillView(view, geometryPromise, color) {
+  note(view, 'loading…');
+  try {
+    const g = await geometryPromise;
+    view.replaceChildren();
+    attachView(view, g, color);
+    view.dataset.rendered = '1';
+  } catch (e) {
+    note(view, `cannot display: ${e.message || e}`);
+    view.dataset.rendered = 'error';
+  }
+}
+
+function recordById(id) {
+  return getJson(`/v1/shapes/${encodeURIComponent(id)}`);
+}
+
+async function renderResults(result) {
+  for (const el of [...views.keys()]) if ($('grid').contains(el)) detachView(el);
+  const grid = $('grid');
+  grid.replaceChildren();
+  const q = current;
+  const qcap = [];
+  const b = document.createElement('b'); b.textContent = 'query: ';
+  const nm = document.createElement('span'); nm.textContent = q.name;
+  qcap.push(b, nm, ' ', tagsEl(q.tags));
+  const qc = makeCard('query', qcap);
+  qc.fig.dataset.testid = 'query-card';
+  grid.append(qc.fig);
+  fillView(qc.view, q.geometry(), QUERY_COLOR);
+  lastHits = result.hits;
+  const records = await Promise.all(result.hits.map((h) => recordById(h.id).catch(() => null)));
+  result.hits.forEach((hit, i) => {
+    const rec = records[i] || { id: hit.id, name: hit.name, tags: [] };
+    const rank = document.createElement('span'); rank.className = 'rank'; rank.textContent = `#${hit.rank}`;
+    const name = document.createElement('span'); name.textContent = hit.name;
+    const score = document.createElement('span'); score.className = 'score'; score.title = 'dissimilarity (lower is closer)';
+    score.textContent = fmtScore(hit.score);
+    const c = makeCard('hit', [rank, name, score, document.createElement('br'), tagsEl(rec.tags)]);
+    c.fig.dataset.testid = 'hit-card';
+    c.fig.dataset.rank = hit.rank;
+    c.fig.title = 'open next to the query';
+    if (q.tags && q.tags.length && rec.tags && rec.tags.some((t) => q.tags.includes(t))) c.fig.classList.add('same-class');
+    grid.append(c.fig);
+    fillView(c.view, loadStoredGeometry(rec), HIT_COLOR);
+    c.fig.addEventListener('click', (ev) => { if (ev.detail <= 1) openCompare(hit, rec); });
+  });
+  const t = result.timings || {};
+  setStatus(`${result.hits.length} hits of ${result.candidates} candidates · stages: ${(result.stages || []).join(' → ') || 'scan'}` +
+    ` · ${fmtMs(t.total_ms)} ranking${t.analysis && t.analysis.total_ms ? `, ${fmtMs(t.analysis.total_ms)} analysing the upload` : ''}` +
+    ' · click a hit to open it next to the query; drag any view to orbit (one camera for all)');
+}
+
+const fmtMs = (ms) => (ms === undefined ? '?' : `${ms.toFixed(ms < 10 ? 1 : 0)} ms`);
+
+// ---------------------------------------------------------------------------------------------
+// Search.
+
+function searchOptions() {
+  const opts = { top_k: Math.max(1, Math.min(1000, parseInt($('topk').value, 10) || 8)) };
+  const tag = $('search-tag').value.trim();
+  if (tag) opts.tags = [tag];
+  const mode = document.querySelector('input[name=rerank-mode]:checked').value;
+  if (mode === 'custom') {
+    const stages = [];
+    const n = (id) => parseInt($(id).value, 10);
+    if ($('st-reciprocal').checked) stages.push({ stage: 'reciprocal', shortlist: n('st-reciprocal-n') });
+    if ($('st-exact').checked) stages.push({ stage: 'exact', shortlist: n('st-exact-n'), spec: { dissimilarity: $('st-exact-d').value } });
+    if ($('st-gw').checked) stages.push({ stage: 'spectral_gw', shortlist: n('st-gw-n') });
+    opts.rerank = stages;
+  }
+  return opts;
+}
+
+async function searchStored(rec) {
+  showError(null);
+  hideCompare();
+  current = { name: rec.name, tags: rec.tags, id: rec.id, geometry: () => loadStoredGeometry(rec) };
+  setStatus(`searching for ${rec.name}…`);
+  try {
+    const result = await postJson('/v1/search', { id: rec.id, ...searchOptions() });
+    await renderResults(result);
+  } catch (e) {
+    showError(e);
+    setStatus('search failed');
+  }
+}
+
+async function searchUpload(file) {
+  showError(null);
+  hideCompare();
+  const bytes = new Uint8Array(await file.arrayBuffer());
+  const format = formatOf(file.name, bytes);
+  const align = $('align').checked;
+  let parsed = null;
+  const geometry = () => {
+    if (!parsed) parsed = parseMesh(bytes, format).then((g) => normalizeGeometry(g, align));
+    return parsed.then((g) => g.clone());
+  };
+  current = { name: file.name, tags: [], id: null, geometry };
+  setStatus(`analysing ${file.name} (${(bytes.length / 1024).toFixed(0)} KiB)…`);
+  try {
+    let result;
+    if ($('store').checked) {
+      const fd = new FormData();
+      fd.append('file', new Blob([bytes]), file.name);
+      const tags = $('store-tags').value.split(',').map((t) => t.trim()).filter(Boolean);
+      fd.append('metadata', new Blob([JSON.stringify({ name: file.name, tags })], { type: 'application/json' }));
+      const ing = await (await api('POST', '/v1/shapes', fd)).json();
+      current.id = ing.id;
+      current.tags = ing.shape.tags;
+      result = await postJson('/v1/search', { id: ing.id, ...searchOptions() });
+      refreshList();
+      refreshIndexInfo();
+    } else {
+      const fd = new FormData();
+      fd.append('file', new Blob([bytes]), file.name);
+      fd.append('query', new Blob([JSON.stringify(searchOptions())], { type: 'application/json' }));
+      result = await (await api('POST', '/v1/search', fd)).json();
+    }
+    await renderResults(result);
+  } catch (e) {
+    showError(e);
+    setStatus(`${file.name}: not searched`);
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Compare: query and one hit side by side, their distance distributions.
+
+let compareHit = null;
+
+function hideCompare() {
+  $('compare').hidden = true;
+  detachView($('cmp-query'));
+  detachView($('cmp-hit'));
+  compareHit = null;
+}
+
+async function openCompare(hit, rec) {
+  compareHit = { hit, rec };
+  $('compare').hidden = false;
+  $('compare-title').textContent = `${current.name}  vs  #${hit.rank} ${hit.name}`;
+  $('cmp-query-cap').textContent = `query: ${current.name}`;
+  $('cmp-hit-cap').textContent = `#${hit.rank} ${hit.name} · score ${fmtScore(hit.score)}`;
+  fillView($('cmp-query'), current.geometry(), QUERY_COLOR);
+  fillView($('cmp-hit'), loadStoredGeometry(rec), HIT_COLOR);
+  $('compare').scrollIntoView({ behavior: 'instant', block: 'start' });
+  await drawPlot();
+}
+
+const signatureCache = new Map();
+async function signature(id) {
+  if (!signatureCache.has(id)) {
+    const p = getJson(`/v1/shapes/${encodeURIComponent(id)}/signature`);
+    signatureCache.set(id, p);
+    p.catch(() => signatureCache.delete(id));
+  }
+  return signatureCache.get(id);
+}
+
+function distributionChannels(sig) {
+  const out = new Map();
+  for (const ch of (sig.signature && sig.signature.channels) || []) {
+    if (ch.values && ch.values.distribution) out.set(ch.name, ch.values.distribution);
+  }
+  return out;
+}
+
+async function drawPlot() {
+  if (!compareHit) return;
+  const plot = $('plot');
+  try {
+    const [qs, hs] = await Promise.all([
+      current.id ? signature(current.id) : Promise.resolve(null),
+      signature(compareHit.hit.id),
+    ]);
+    const hch = distributionChannels(hs);
+    const qch = qs ? distributionChannels(qs) : new Map();
+    const sel = $('channel');
+    const names = [...hch.keys()];
+    if ([...sel.options].map((o) => o.value).join('\n') !== names.join('\n')) {
+      const keep = sel.value;
+      sel.replaceChildren(...names.map((n) => { const o = document.createElement('option'); o.value = n; o.textContent = n; return o; }));
+      if (names.includes(keep)) sel.value = keep;
+    }
+    const name = sel.value || names[0];
+    if (!name) { plot.innerHTML = '<p class="note">this signature has no distance distributions</p>'; return; }
+    const kind = document.querySelector('input[name=plot-kind]:checked').value;
+    const series = [];
+    if (qch.has(name)) series.push({ label: `query: ${current.name}`, color: '#2a5fc9', dist: distributionFromSketch(qch.get(name)) });
+    series.push({ label: `#${compareHit.hit.rank} ${compareHit.hit.name}`, color: '#d0701f', dist: distributionFromSketch(hch.get(name)) });
+    plot.innerHTML = plotDistributions(series, { kind, channel: name });
+    if (!qch.has(name)) {
+      const p = document.createElement('p');
+      p.className = 'note';
+      p.textContent = 'The uploaded query is not stored, so only the hit’s distribution is drawn: tick “also store it” to compare both.';
+      plot.append(p);
+    }
+  } catch (e) {
+    showError(e);
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Stored shapes: paged list, search, delete.
+
+const cursors = [null]; // cursor of each page visited
+let pageIdx = 0;
+let nextCursor = null;
+
+async function refreshList() {
+  const tag = $('tag-filter').value.trim();
+  const cursor = cursors[pageIdx];
+  const qs = new URLSearchParams({ limit: String(PAGE) });
+  if (cursor) qs.set('cursor', cursor);
+  if (tag) qs.set('tag', tag);
+  try {
+    const page = await getJson(`/v1/shapes?${qs}`);
+    nextCursor = page.next_cursor;
+    const ul = $('shape-list');
+    ul.replaceChildren(...page.items.map(shapeRow));
+    if (!page.items.length) {
+      const li = document.createElement('li');
+      li.textContent = pageIdx === 0 ? 'no stored shapes yet: drop a mesh and tick “also store it”' : 'no more shapes';
+      ul.append(li);
+    }
+    $('page').textContent = `page ${pageIdx + 1}`;
+    $('prev').disabled = pageIdx === 0;
+    $('next').disabled = !nextCursor;
+  } catch (e) {
+    showError(e);
+  }
+}
+
+function shapeRow(rec) {
+  const li = document.createElement('li');
+  li.dataset.id = rec.id;
+  const name = document.createElement('span');
+  name.className = 'name';
+  name.textContent = rec.name;
+  name.title = `${rec.name} · ${rec.id} · ${rec.format}, ${rec.vertices} vertices, ${rec.faces} faces`;
+  const meta = document.createElement('span');
+  meta.className = 'meta';
+  meta.textContent = `${rec.format} ${rec.vertices}v`;
+  const search = document.createElement('button');
+  search.textContent = 'search';
+  search.dataset.testid = 'search-stored';
+  search.addEventListener('click', () => searchStored(rec));
+  const del = document.createElement('button');
+  del.textContent = 'delete';
+  del.className = 'danger';
+  del.dataset.testid = 'delete';
+  del.addEventListener('click', async () => {
+    if (del.dataset.armed !== '1') {
+      del.dataset.armed = '1';
+      del.textContent = 'sure?';
+      setTimeout(() => { del.dataset.armed = ''; del.textContent = 'delete'; }, 4000);
+      return;
+    }
+    try {
+      await api('DELETE', `/v1/shapes/${encodeURIComponent(rec.id)}`);
+      showError(null);
+      setStatus(`deleted ${rec.name}`);
+      for (const k of [...geometryCache.keys()]) if (k.startsWith(`${rec.id}:`)) geometryCache.delete(k);
+      signatureCache.delete(rec.id);
+      await refreshList();
+      refreshIndexInfo();
+    } catch (e) {
+      showError(e);
+    }
+  });
+  li.append(name, tagsEl(rec.tags), meta, search, del);
+  return li;
+}
+
+async function refreshIndexInfo() {
+  try {
+    const info = await getJson('/v1/index');
+    $('index-info').textContent = `${info.shapes} stored shapes · calibration epoch ${info.calibration_epoch} · engine ${info.engine}`;
+  } catch (e) {
+    $('index-info').textContent = 'index unavailable';
+    showError(e);
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Wiring.
+
+$('file').addEventListener('change', () => {
+  const f = $('file').files[0];
+  if (f) searchUpload(f);
+  $('file').value = '';
+});
+const drop = $('drop');
+drop.addEventListener('dragover', (e) => { e.preventDefault(); drop.classList.add('over'); });
+drop.addEventListener('dragleave', () => drop.classList.remove('over'));
+drop.addEventListener('drop', (e) => {
+  e.preventDefault();
+  drop.classList.remove('over');
+  const f = e.dataTransfer.files[0];
+  if (f) searchUpload(f);
+});
+$('prev').addEventListener('click', () => { if (pageIdx > 0) { pageIdx--; refreshList(); } });
+$('next').addEventListener('click', () => {
+  if (nextCursor) { cursors[pageIdx + 1] = nextCursor; pageIdx++; refreshList(); }
+});
+let filterTimer;
+$('tag-filter').addEventListener('input', () => {
+  clearTimeout(filterTimer);
+  filterTimer = setTimeout(() => { cursors.length = 1; pageIdx = 0; refreshList(); }, 250);
+});
+$('compare-close').addEventListener('click', hideCompare);
+$('channel').addEventListener('change', drawPlot);
+for (const r of document.querySelectorAll('input[name=plot-kind]')) r.addEventListener('change', drawPlot);
+$('align').addEventListener('change', () => {
+  if (current && current.id) {
+    const rec = { id: current.id, name: current.name, tags: current.tags };
+    recordById(current.id).then(searchStored).catch(() => searchStored(rec));
+  }
+});
+
+refreshIndexInfo();
+refreshList();
+// For tests and the curious: the renderer and a way to force a frame.
+window.shapeseekViewer = { renderer, render: () => renderAll(), views };
