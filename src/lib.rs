@@ -20,6 +20,7 @@ pub mod scale;
 pub mod server;
 pub mod signature;
 pub mod spectrum;
+pub mod storage;
 pub mod topk;
 
 pub use error::{Error, Result};
