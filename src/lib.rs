@@ -20,5 +20,6 @@ pub mod search;
 pub mod server;
 pub mod signature;
 pub mod spectrum;
+pub mod storage;
 
 pub use error::{Error, Result};

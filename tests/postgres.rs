@@ -1,0 +1,1025 @@
+//! The storage seam (`shapeseek::storage`): one test body per behaviour, run on the sled backend
+//! and on the PostgreSQL backend through `Arc<dyn ShapeStore>`.
+//!
+//! PostgreSQL: a private instance is started once per test process (`initdb` + `pg_ctl` from
+//! `/usr/lib/postgresql/*/bin` or PATH, in a temporary directory, on a free port on 127.0.0.1,
+//! run as the `postgres` user when the tests run as root); a watchdog stops it and removes its
+//! directory when the test process ends. When it cannot start, the server on 127.0.0.1:5432
+//! (`SHAPESEEK_TEST_PG_URL` overrides its URL) is used instead. Every test gets a fresh database
+//! (`CREATE DATABASE`), dropped at its end. With no PostgreSQL at all a test prints `SKIPPED:`
+//! and passes — except under `CI=true`, where it fails.
+//!
+//! Insert throughput figures: `cargo test --release --test postgres insert_throughput --
+//! --ignored --nocapture` (see `docs/scale-out.md`).
+
+use sha2::{Digest, Sha256};
+use shapeseek::index::store::ShapeRecord;
+use shapeseek::mesh::prepare::PrepareReport;
+use shapeseek::storage::pg_migrate::{self, PG_SCHEMA_VERSION};
+use shapeseek::storage::postgres::{migrate_url, PoolOptions};
+use shapeseek::storage::{
+    for_each_signature, Backend, InsertOutcome, NewShape, PgStore, ShapeStore, SledStorage,
+};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+// ---------------------------------------------------------------------------------------------
+// PostgreSQL harness
+// ---------------------------------------------------------------------------------------------
+
+/// A PostgreSQL server the tests may create databases on.
+struct PgServer {
+    /// `postgres://user@host:port` (no database).
+    base: String,
+    /// How it was found (printed once).
+    origin: String,
+}
+
+/// Directory of `initdb`/`pg_ctl`: `SHAPESEEK_PG_BIN`, the newest `/usr/lib/postgresql/*/bin`,
+/// or PATH.
+fn pg_bin_dir() -> Option<PathBuf> {
+    if let Ok(d) = std::env::var("SHAPESEEK_PG_BIN") {
+        return Some(PathBuf::from(d));
+    }
+    let mut versions: Vec<(u32, PathBuf)> = std::fs::read_dir("/usr/lib/postgresql")
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|e| {
+            let v = e.file_name().to_string_lossy().parse::<u32>().ok()?;
+            let bin = e.path().join("bin");
+            bin.join("initdb").exists().then_some((v, bin))
+        })
+        .collect();
+    versions.sort();
+    if let Some((_, bin)) = versions.pop() {
+        return Some(bin);
+    }
+    std::env::var_os("PATH").and_then(|p| {
+        std::env::split_paths(&p).find(|d| d.join("initdb").exists() && d.join("pg_ctl").exists())
+    })
+}
+
+fn is_root() -> bool {
+    Command::new("id")
+        .arg("-u")
+        .output()
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
+        .unwrap_or(false)
+}
+
+/// `cmd` as a Command, run as `postgres` via runuser when we are root (initdb refuses root).
+fn as_pg_user(root: bool, cmd: &Path) -> Command {
+    if root {
+        let mut c = Command::new("runuser");
+        c.args(["-u", "postgres", "--"]).arg(cmd);
+        c
+    } else {
+        Command::new(cmd)
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free port on 127.0.0.1")
+}
+
+/// Starts a private instance; Err says why not.
+fn start_private(bin: &Path) -> Result<PgServer, String> {
+    let root = is_root();
+    let dir = tempfile::Builder::new()
+        .prefix("shapeseek-pg-")
+        .tempdir()
+        .map_err(|e| format!("temp dir: {e}"))?
+        .keep();
+    let data = dir.join("data");
+    if root {
+        let st = Command::new("chown")
+            .args(["-R", "postgres:"])
+            .arg(&dir)
+            .status()
+            .map_err(|e| format!("chown: {e}"))?;
+        if !st.success() {
+            return Err("chown of the temp dir to postgres failed".into());
+        }
+    }
+    let out = as_pg_user(root, &bin.join("initdb"))
+        .arg("-D")
+        .arg(&data)
+        .args([
+            "-U",
+            "postgres",
+            "-A",
+            "trust",
+            "-E",
+            "UTF8",
+            "--no-locale",
+            "--no-sync",
+        ])
+        .output()
+        .map_err(|e| format!("initdb: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "initdb failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    let port = free_port();
+    let opts = format!(
+        "-p {port} -k {} -c listen_addresses=127.0.0.1 -c max_connections=200",
+        dir.display()
+    );
+    let out = as_pg_user(root, &bin.join("pg_ctl"))
+        .arg("-D")
+        .arg(&data)
+        .arg("-l")
+        .arg(dir.join("log"))
+        .args(["-w", "-t", "60", "-o", &opts, "start"])
+        .output()
+        .map_err(|e| format!("pg_ctl: {e}"))?;
+    if !out.status.success() {
+        let log = std::fs::read_to_string(dir.join("log")).unwrap_or_default();
+        return Err(format!(
+            "pg_ctl start failed: {}{log}",
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    // Stop the instance and remove its directory once this test process is gone.
+    let pg_ctl = bin.join("pg_ctl");
+    let stop = if root {
+        format!(
+            "runuser -u postgres -- '{}' -D '{}' -m immediate stop",
+            pg_ctl.display(),
+            data.display()
+        )
+    } else {
+        format!(
+            "'{}' -D '{}' -m immediate stop",
+            pg_ctl.display(),
+            data.display()
+        )
+    };
+    let script = format!(
+        "while kill -0 {pid} 2>/dev/null; do sleep 1; done; {stop} >/dev/null 2>&1; rm -rf '{dir}'",
+        pid = std::process::id(),
+        dir = dir.display()
+    );
+    Command::new("sh")
+        .args(["-c", &script])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .map_err(|e| format!("watchdog: {e}"))?;
+    Ok(PgServer {
+        base: format!("postgres://postgres@127.0.0.1:{port}"),
+        origin: format!("private instance on port {port} in {}", dir.display()),
+    })
+}
+
+/// The shared server: `Ok(None)` = no PostgreSQL here at all; `Err` = present but unusable.
+fn server() -> &'static Result<Option<PgServer>, String> {
+    static SERVER: OnceLock<Result<Option<PgServer>, String>> = OnceLock::new();
+    SERVER.get_or_init(|| {
+        let mut why = Vec::new();
+        let bin = pg_bin_dir();
+        if let Some(bin) = &bin {
+            match start_private(bin) {
+                Ok(s) => {
+                    eprintln!("postgres tests: {}", s.origin);
+                    return Ok(Some(s));
+                }
+                Err(e) => why.push(format!("private instance: {e}")),
+            }
+        }
+        let url = std::env::var("SHAPESEEK_TEST_PG_URL")
+            .unwrap_or_else(|_| "postgres://postgres@127.0.0.1:5432".into());
+        let reachable = std::net::TcpStream::connect_timeout(
+            &"127.0.0.1:5432".parse().expect("address"),
+            Duration::from_secs(2),
+        )
+        .is_ok();
+        if reachable || std::env::var("SHAPESEEK_TEST_PG_URL").is_ok() {
+            eprintln!("postgres tests: using {url}");
+            return Ok(Some(PgServer {
+                origin: format!("server at {url}"),
+                base: url,
+            }));
+        }
+        why.push("no server on 127.0.0.1:5432".into());
+        if bin.is_some() {
+            Err(why.join("; "))
+        } else {
+            Ok(None)
+        }
+    })
+}
+
+/// A throwaway database, dropped at the end of the test.
+struct TestDb {
+    base: String,
+    name: String,
+}
+
+impl TestDb {
+    /// A fresh empty database, or `None` (after printing `SKIPPED:`) when no PostgreSQL exists.
+    async fn new(test: &str) -> Option<TestDb> {
+        let srv = match server() {
+            Ok(Some(s)) => s,
+            Ok(None) => {
+                assert!(
+                    std::env::var("CI").as_deref() != Ok("true"),
+                    "{test}: no PostgreSQL (initdb/pg_ctl or a server on 127.0.0.1:5432) in CI"
+                );
+                println!("SKIPPED: {test}: no PostgreSQL found (initdb/pg_ctl or 127.0.0.1:5432)");
+                return None;
+            }
+            Err(e) => panic!("{test}: PostgreSQL is installed but unusable: {e}"),
+        };
+        static N: AtomicUsize = AtomicUsize::new(0);
+        let name = format!(
+            "shapeseek_t_{}_{}",
+            std::process::id(),
+            N.fetch_add(1, Ordering::Relaxed)
+        );
+        let admin = raw_client(&format!("{}/postgres", srv.base)).await;
+        // Identifiers cannot be parameters; the name is built from numbers only.
+        admin
+            .batch_execute(&format!("CREATE DATABASE {name}"))
+            .await
+            .expect("CREATE DATABASE");
+        Some(TestDb {
+            base: srv.base.clone(),
+            name,
+        })
+    }
+
+    fn url(&self) -> String {
+        format!("{}/{}", self.base, self.name)
+    }
+
+    /// The database migrated and opened as a store.
+    async fn store(&self) -> Arc<dyn ShapeStore> {
+        let rep = migrate_url(&self.url()).await.expect("migrate");
+        assert_eq!(rep.to, PG_SCHEMA_VERSION);
+        Arc::new(
+            PgStore::connect(&self.url(), PoolOptions { max_size: 8 })
+                .await
+                .expect("connect"),
+        )
+    }
+}
+
+impl Drop for TestDb {
+    fn drop(&mut self) {
+        let (admin, name) = (format!("{}/postgres", self.base), self.name.clone());
+        // Drop runs inside the test's runtime: use a thread with its own.
+        let _ = std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .expect("runtime");
+            rt.block_on(async {
+                let c = raw_client(&admin).await;
+                let _ = c
+                    .batch_execute(&format!("DROP DATABASE IF EXISTS {name} WITH (FORCE)"))
+                    .await;
+            })
+        })
+        .join();
+    }
+}
+
+async fn raw_client(url: &str) -> tokio_postgres::Client {
+    let (c, conn) = tokio_postgres::connect(url, tokio_postgres::NoTls)
+        .await
+        .unwrap_or_else(|e| panic!("connect {url}: {e}"));
+    tokio::spawn(conn);
+    c
+}
+
+/// A sled store in a temporary directory (kept alive with it).
+struct SledCase {
+    _dir: tempfile::TempDir,
+    store: Arc<dyn ShapeStore>,
+}
+
+fn sled_case() -> SledCase {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = SledStorage::open(&dir.path().join("index")).expect("open sled");
+    SledCase {
+        _dir: dir,
+        store: Arc::new(store),
+    }
+}
+
+/// Runs a shared body on sled and on PostgreSQL.
+macro_rules! on_both {
+    ($body:ident) => {
+        mod $body {
+            #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+            async fn sled() {
+                let case = super::sled_case();
+                super::$body(case.store.clone()).await;
+            }
+
+            #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+            async fn postgres() {
+                let Some(db) = super::TestDb::new(concat!(stringify!($body), "::postgres")).await
+                else {
+                    return;
+                };
+                super::$body(db.store().await).await;
+            }
+        }
+    };
+}
+
+// ---------------------------------------------------------------------------------------------
+// Shapes
+// ---------------------------------------------------------------------------------------------
+
+/// Deterministic pseudo-random bytes (xorshift64*).
+fn noise(seed: u64, len: usize) -> Vec<u8> {
+    let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut out = Vec::with_capacity(len + 8);
+    while out.len() < len {
+        x ^= x >> 12;
+        x ^= x << 25;
+        x ^= x >> 27;
+        out.extend_from_slice(&x.wrapping_mul(0x2545_F491_4F6C_DD1D).to_le_bytes());
+    }
+    out.truncate(len);
+    out
+}
+
+/// An OBJ-like text mesh of about `len` bytes.
+fn obj_text(seed: u64, len: usize) -> Vec<u8> {
+    let mut s = String::with_capacity(len + 64);
+    let r = noise(seed, len / 4 + 16);
+    let mut i = 0usize;
+    let mut v = 0usize;
+    while s.len() < len {
+        let f = |k: usize| {
+            (u16::from_le_bytes([r[k % r.len()], r[(k + 1) % r.len()]]) as f64) / 65535.0
+        };
+        if v < 3 || i % 3 != 2 {
+            s.push_str(&format!("v {:.6} {:.6} {:.6}\n", f(i), f(i + 2), f(i + 4)));
+            v += 1;
+        } else {
+            s.push_str(&format!("f {} {} {}\n", v - 2, v - 1, v));
+        }
+        i += 6;
+    }
+    s.into_bytes()
+}
+
+fn prepare_report() -> PrepareReport {
+    PrepareReport {
+        vertices_in: 10,
+        faces_in: 16,
+        vertices_out: 10,
+        faces_out: 16,
+        welded_vertices: 0,
+        degenerate_faces: 0,
+        duplicate_faces: 0,
+        component_faces_dropped: 0,
+        unreferenced_vertices: 0,
+        components: 1,
+        components_kept: 1,
+        dropped_area_fraction: 0.0,
+        boundary_edges: 0,
+        boundary_loops: 0,
+        nonmanifold_edges: 0,
+        inconsistent_orientation_edges: 0,
+        euler_characteristic: 2,
+        original_area: 1.25,
+        scale_factor: 0.894_427_190_999_915_9,
+    }
+}
+
+/// A shape with content `seed` (same seed = same bytes), allocated an id by `store`.
+async fn shape(
+    store: &dyn ShapeStore,
+    seed: u64,
+    tags: &[&str],
+    sizes: (usize, usize, usize),
+) -> NewShape {
+    let (sig_len, pay_len, mesh_len) = sizes;
+    let original = obj_text(seed, mesh_len);
+    let sha256: [u8; 32] = Sha256::digest(&original).into();
+    let id = store.new_id().await.expect("new id");
+    NewShape {
+        record: ShapeRecord {
+            name: format!("shape {seed}"),
+            id,
+            tags: tags.iter().map(|t| t.to_string()).collect(),
+            format: "obj".into(),
+            content_type: "model/obj".into(),
+            bytes: original.len() as u64,
+            vertices: 10,
+            faces: 16,
+            area: 1.25,
+            sha256: hex::encode(sha256),
+            created_unix_ms: 1_764_600_000_000 + seed,
+            prepare: prepare_report(),
+            spec_key: "spec-a-k60".into(),
+        },
+        sha256,
+        signature: noise(seed ^ 0x51, sig_len),
+        original,
+        payload: (pay_len > 0).then(|| noise(seed ^ 0xa7, pay_len)),
+    }
+}
+
+const SMALL: (usize, usize, usize) = (512, 1024, 4096);
+
+// ---------------------------------------------------------------------------------------------
+// Shared bodies
+// ---------------------------------------------------------------------------------------------
+
+on_both!(insert_get_and_idempotent_reinsert);
+async fn insert_get_and_idempotent_reinsert(store: Arc<dyn ShapeStore>) {
+    let s = &*store;
+    let a = shape(s, 1, &["chair"], SMALL).await;
+    let out = s.insert(a.clone()).await.unwrap();
+    assert_eq!(out, InsertOutcome::Inserted(a.record.id.clone()));
+    assert_eq!(s.get(&a.record.id).await.unwrap(), Some(a.record.clone()));
+    assert_eq!(
+        s.mesh(&a.record.id).await.unwrap(),
+        Some(a.original.clone())
+    );
+    assert_eq!(
+        s.signature(&a.record.id).await.unwrap(),
+        Some(a.signature.clone())
+    );
+    assert_eq!(s.payload(&a.record.id).await.unwrap(), a.payload.clone());
+    assert_eq!(
+        s.id_for_hash(&a.sha256).await.unwrap(),
+        Some(a.record.id.clone())
+    );
+
+    // The same bytes again, under a fresh id: nothing written, the stored id answered.
+    let again = shape(s, 1, &["other"], SMALL).await;
+    assert_ne!(again.record.id, a.record.id);
+    assert_eq!(
+        s.insert(again.clone()).await.unwrap(),
+        InsertOutcome::AlreadyPresent(a.record.id.clone())
+    );
+    assert_eq!(s.get(&again.record.id).await.unwrap(), None);
+    assert_eq!(s.count().await.unwrap(), 1);
+
+    // Without payload; ids follow allocation order.
+    let b = shape(s, 2, &[], (512, 0, 2048)).await;
+    assert!(
+        b.record.id > a.record.id,
+        "{} > {}",
+        b.record.id,
+        a.record.id
+    );
+    assert!(matches!(
+        s.insert(b.clone()).await.unwrap(),
+        InsertOutcome::Inserted(_)
+    ));
+    assert_eq!(s.payload(&b.record.id).await.unwrap(), None);
+    assert_eq!(s.count().await.unwrap(), 2);
+
+    // Unknown and malformed ids are simply absent.
+    for id in ["ffffffffffff0000", "not-an-id", ""] {
+        assert_eq!(s.get(id).await.unwrap(), None);
+        assert_eq!(s.mesh(id).await.unwrap(), None);
+        assert!(!s.delete(id).await.unwrap());
+    }
+    // A record that does not match its hash is refused.
+    let mut bad = shape(s, 3, &[], SMALL).await;
+    bad.record.sha256 = "00".repeat(32);
+    assert!(s.insert(bad).await.is_err());
+
+    let expected = match s.backend() {
+        Backend::Sled => shapeseek::index::SCHEMA_VERSION,
+        Backend::Postgres => PG_SCHEMA_VERSION,
+    };
+    assert_eq!(s.schema_version().await.unwrap(), expected);
+    assert!(s.size_on_disk().await.unwrap() > 0);
+}
+
+on_both!(delete_is_atomic);
+async fn delete_is_atomic(store: Arc<dyn ShapeStore>) {
+    let s = &*store;
+    let a = shape(s, 10, &["t"], SMALL).await;
+    let keep = shape(s, 11, &["t"], SMALL).await;
+    s.insert(a.clone()).await.unwrap();
+    s.insert(keep.clone()).await.unwrap();
+    assert!(s.delete(&a.record.id).await.unwrap());
+    let id = &a.record.id;
+    assert_eq!(s.get(id).await.unwrap(), None);
+    assert_eq!(s.mesh(id).await.unwrap(), None);
+    assert_eq!(s.signature(id).await.unwrap(), None);
+    assert_eq!(s.payload(id).await.unwrap(), None);
+    assert_eq!(s.id_for_hash(&a.sha256).await.unwrap(), None);
+    assert!(
+        !s.delete(id).await.unwrap(),
+        "a second delete finds nothing"
+    );
+    assert_eq!(s.count().await.unwrap(), 1);
+    assert_eq!(
+        s.get(&keep.record.id).await.unwrap(),
+        Some(keep.record.clone())
+    );
+    // The same bytes can be stored again, as a new shape.
+    let back = shape(s, 10, &["t"], SMALL).await;
+    assert_eq!(
+        s.insert(back.clone()).await.unwrap(),
+        InsertOutcome::Inserted(back.record.id.clone())
+    );
+    assert_eq!(s.mesh(&back.record.id).await.unwrap(), Some(back.original));
+}
+
+on_both!(list_pages_and_filters_by_tag);
+async fn list_pages_and_filters_by_tag(store: Arc<dyn ShapeStore>) {
+    let s = &*store;
+    let mut ids = Vec::new();
+    let mut even = Vec::new();
+    for i in 0..7u64 {
+        let tag = if i % 2 == 0 { "even" } else { "odd" };
+        let sh = shape(s, 100 + i, &[tag, "all"], SMALL).await;
+        s.insert(sh.clone()).await.unwrap();
+        if i % 2 == 0 {
+            even.push(sh.record.id.clone());
+        }
+        ids.push(sh.record.id);
+    }
+    // Pages of 3: 3 + 3 + 1, in id order, `more` on all but the last.
+    let mut seen = Vec::new();
+    let mut after: Option<String> = None;
+    let mut mores = Vec::new();
+    loop {
+        let p = s.list(after.as_deref(), None, 3).await.unwrap();
+        mores.push(p.more);
+        seen.extend(p.records.iter().map(|r| r.id.clone()));
+        if !p.more {
+            break;
+        }
+        after = p.records.last().map(|r| r.id.clone());
+    }
+    assert_eq!(seen, ids);
+    assert_eq!(mores, vec![true, true, false]);
+
+    // Tag filter, pages of 2 over the 4 even ones.
+    let p1 = s.list(None, Some("even"), 2).await.unwrap();
+    assert!(p1.more);
+    let p2 = s
+        .list(p1.records.last().map(|r| r.id.as_str()), Some("even"), 2)
+        .await
+        .unwrap();
+    assert!(!p2.more);
+    let got: Vec<String> = p1
+        .records
+        .iter()
+        .chain(&p2.records)
+        .map(|r| r.id.clone())
+        .collect();
+    assert_eq!(got, even);
+    assert!(p1
+        .records
+        .iter()
+        .all(|r| r.tags.contains(&"even".to_string())));
+
+    // Exactly a page's worth left: no `more`.
+    let p = s.list(Some(ids[3].as_str()), None, 3).await.unwrap();
+    assert_eq!(p.records.len(), 3);
+    assert!(!p.more);
+    let none = s.list(None, Some("absent"), 10).await.unwrap();
+    assert!(none.records.is_empty() && !none.more);
+    let zero = s.list(None, Some("odd"), 0).await.unwrap();
+    assert!(
+        zero.records.is_empty() && zero.more,
+        "limit 0 still says whether any match"
+    );
+    assert!(
+        s.list(Some("bogus"), None, 3).await.is_err(),
+        "a cursor must be an id"
+    );
+}
+
+on_both!(scan_and_replace_signature);
+async fn scan_and_replace_signature(store: Arc<dyn ShapeStore>) {
+    let s = &*store;
+    let mut want = Vec::new();
+    for i in 0..5u64 {
+        let sh = shape(s, 200 + i, &[], SMALL).await;
+        s.insert(sh.clone()).await.unwrap();
+        want.push((sh.record.clone(), sh.signature.clone()));
+    }
+    let mut got = Vec::new();
+    let n = for_each_signature(s, 2, |rec, sig| {
+        got.push((rec, sig));
+        Ok(())
+    })
+    .await
+    .unwrap();
+    assert_eq!(n, 5);
+    assert_eq!(got, want);
+
+    // A stale spec: record, signature and payload replaced together.
+    let (mut rec, _) = want[2].clone();
+    rec.spec_key = "spec-b-k60".into();
+    let sig = noise(999, 700);
+    let pay = noise(998, 300);
+    assert!(s.replace_signature(&rec, &sig, Some(&pay)).await.unwrap());
+    assert_eq!(
+        s.get(&rec.id).await.unwrap().unwrap().spec_key,
+        "spec-b-k60"
+    );
+    assert_eq!(s.signature(&rec.id).await.unwrap(), Some(sig));
+    assert_eq!(s.payload(&rec.id).await.unwrap(), Some(pay));
+    // Others untouched; an absent shape is not created.
+    assert_eq!(
+        s.signature(&want[1].0.id).await.unwrap(),
+        Some(want[1].1.clone())
+    );
+    assert!(s.delete(&want[4].0.id).await.unwrap());
+    assert!(!s
+        .replace_signature(&want[4].0, &[1, 2, 3], None)
+        .await
+        .unwrap());
+    assert_eq!(s.get(&want[4].0.id).await.unwrap(), None);
+    assert_eq!(s.signature(&want[4].0.id).await.unwrap(), None);
+}
+
+/// Polls `try_lock_calibration` until it is granted (a PostgreSQL lock dropped without commit is
+/// released when the server notices its connection closed).
+async fn lock_within(s: &dyn ShapeStore, within: Duration) -> shapeseek::storage::CalibrationLock {
+    let t = Instant::now();
+    loop {
+        if let Some(l) = s.try_lock_calibration().await.unwrap() {
+            return l;
+        }
+        assert!(
+            t.elapsed() < within,
+            "calibration lock not released within {within:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+on_both!(calibration_epochs);
+async fn calibration_epochs(store: Arc<dyn ShapeStore>) {
+    let s = &*store;
+    assert_eq!(s.calibration().await.unwrap(), None);
+    let lock = s.lock_calibration().await.unwrap();
+    assert_eq!(lock.current(), None);
+    assert_eq!(lock.next_epoch(), 1);
+    // Numbers that a re-serialisation would reformat: the JSON is kept byte for byte.
+    let json1 = br#"{"epoch":1,"windows":[0.1,2.5e-17,1e300],"z":{"b":1,"a":2}}"#.to_vec();
+    let c1 = lock.commit(40, json1.clone()).await.unwrap();
+    assert_eq!((c1.epoch, c1.calibrated_on), (1, 40));
+    assert_eq!(s.calibration().await.unwrap(), Some(c1.clone()));
+    assert_eq!(s.calibration().await.unwrap().unwrap().json, json1);
+
+    let lock = s.lock_calibration().await.unwrap();
+    assert_eq!(lock.current(), Some(&c1));
+    let c2 = lock.commit(55, br#"{"epoch":2}"#.to_vec()).await.unwrap();
+    assert_eq!(c2.epoch, 2);
+
+    // Released without writing, explicitly or by drop: nothing changes, the lock is free.
+    s.lock_calibration().await.unwrap().release().await.unwrap();
+    drop(s.lock_calibration().await.unwrap());
+    let lock = lock_within(s, Duration::from_secs(10)).await;
+    assert_eq!(lock.current(), Some(&c2));
+    // Not JSON: refused, nothing written, lock released.
+    assert!(lock.commit(1, b"{nope".to_vec()).await.is_err());
+    assert_eq!(s.calibration().await.unwrap(), Some(c2));
+    lock_within(s, Duration::from_secs(10))
+        .await
+        .release()
+        .await
+        .unwrap();
+}
+
+on_both!(recalibration_lock_excludes);
+async fn recalibration_lock_excludes(store: Arc<dyn ShapeStore>) {
+    // While held: a try fails at once and a waiter waits until the holder commits.
+    let held = store.lock_calibration().await.unwrap();
+    assert!(store.try_lock_calibration().await.unwrap().is_none());
+    let st = store.clone();
+    let waiter = tokio::spawn(async move {
+        let l = st.lock_calibration().await.unwrap();
+        let seen = l.current().map(|c| c.epoch);
+        l.release().await.unwrap();
+        seen
+    });
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(
+        !waiter.is_finished(),
+        "the waiter got the lock while it was held"
+    );
+    held.commit(1, br#"{"epoch":1}"#.to_vec()).await.unwrap();
+    assert_eq!(
+        waiter.await.unwrap(),
+        Some(1),
+        "the waiter sees the committed epoch"
+    );
+
+    // Two nodes race to recalibrate: exactly one wins, the epoch advances once.
+    let barrier = Arc::new(tokio::sync::Barrier::new(2));
+    let mut tasks = Vec::new();
+    for _ in 0..2 {
+        let (st, b) = (store.clone(), barrier.clone());
+        tasks.push(tokio::spawn(async move {
+            b.wait().await;
+            match st.try_lock_calibration().await.unwrap() {
+                None => false,
+                Some(l) => {
+                    // Hold it while "computing", long enough for the other to try.
+                    tokio::time::sleep(Duration::from_millis(400)).await;
+                    let e = l.next_epoch();
+                    l.commit(9, format!("{{\"epoch\":{e}}}").into_bytes())
+                        .await
+                        .unwrap();
+                    true
+                }
+            }
+        }));
+    }
+    let mut wins = 0;
+    for t in tasks {
+        wins += t.await.unwrap() as usize;
+    }
+    assert_eq!(wins, 1, "exactly one of two concurrent recalibrations runs");
+    let c = store.calibration().await.unwrap().unwrap();
+    assert_eq!((c.epoch, c.calibrated_on), (2, 9));
+}
+
+on_both!(concurrent_same_bytes_store_one_shape);
+async fn concurrent_same_bytes_store_one_shape(store: Arc<dyn ShapeStore>) {
+    let mut tasks = Vec::new();
+    let barrier = Arc::new(tokio::sync::Barrier::new(8));
+    for _ in 0..8 {
+        let (st, b) = (store.clone(), barrier.clone());
+        tasks.push(tokio::spawn(async move {
+            let sh = shape(&*st, 77, &[], (4096, 8192, 65536)).await;
+            b.wait().await;
+            st.insert(sh).await.unwrap()
+        }));
+    }
+    let mut outs = Vec::new();
+    for t in tasks {
+        outs.push(t.await.unwrap());
+    }
+    let inserted: Vec<&InsertOutcome> = outs
+        .iter()
+        .filter(|o| matches!(o, InsertOutcome::Inserted(_)))
+        .collect();
+    assert_eq!(inserted.len(), 1, "{outs:?}");
+    let id = inserted[0].id().to_string();
+    assert!(outs.iter().all(|o| o.id() == id), "{outs:?}");
+    assert_eq!(store.count().await.unwrap(), 1);
+    assert_eq!(store.list(None, None, 10).await.unwrap().records.len(), 1);
+}
+
+on_both!(meta_values);
+async fn meta_values(store: Arc<dyn ShapeStore>) {
+    let s = &*store;
+    assert_eq!(s.meta_get("spec_key").await.unwrap(), None);
+    s.meta_set("spec_key", b"spec-a-k60").await.unwrap();
+    s.meta_set("spec_key", b"spec-b-k60").await.unwrap();
+    assert_eq!(
+        s.meta_get("spec_key").await.unwrap(),
+        Some(b"spec-b-k60".to_vec())
+    );
+    assert!(s.meta_set("calibration", b"{}").await.is_err());
+    assert!(s.meta_set("schema_version", b"9").await.is_err());
+}
+
+// ---------------------------------------------------------------------------------------------
+// Schema versions (how a version is forced differs; the refusal is the same)
+// ---------------------------------------------------------------------------------------------
+
+fn assert_newer_refusal(err: shapeseek::Error) {
+    let msg = err.to_string();
+    assert!(msg.contains("newer than this build"), "{msg}");
+}
+
+#[test]
+fn sled_refuses_a_newer_schema() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("index");
+    drop(SledStorage::open(&path).unwrap());
+    shapeseek::index::migrate::stamp_version(&path, shapeseek::index::SCHEMA_VERSION + 1).unwrap();
+    assert_newer_refusal(SledStorage::open(&path).err().expect("refused"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn postgres_schema_versions_are_checked_and_migrations_applied_once() {
+    let Some(db) = TestDb::new("postgres_schema_versions").await else {
+        return;
+    };
+    let url = db.url();
+    // Empty database: refused until migrated.
+    let err = PgStore::connect(&url, PoolOptions::default())
+        .await
+        .err()
+        .expect("refused");
+    assert!(
+        err.to_string().contains("shapeseek migrate --store"),
+        "{err}"
+    );
+
+    let rep = migrate_url(&url).await.unwrap();
+    assert_eq!((rep.from, rep.to), (0, PG_SCHEMA_VERSION));
+    assert_eq!(rep.applied.len(), PG_SCHEMA_VERSION as usize);
+    let again = migrate_url(&url).await.unwrap();
+    assert!(again.applied.is_empty(), "a second run applies nothing");
+
+    // Two runners at once with a second migration: each file applied once.
+    let extra = [
+        pg_migrate::MIGRATIONS[0],
+        pg_migrate::Migration {
+            version: 2,
+            name: "0002_test.sql",
+            sql: "CREATE TABLE test_extra (x int); INSERT INTO test_extra VALUES (1);",
+        },
+    ];
+    let runs = futures_join(&url, &extra).await;
+    assert_eq!(
+        runs.iter().map(|r| r.applied.len()).sum::<usize>(),
+        1,
+        "{runs:?}"
+    );
+    let c = raw_client(&url).await;
+    let n: i64 = c
+        .query_one("SELECT count(*) FROM test_extra", &[])
+        .await
+        .unwrap()
+        .get(0);
+    assert_eq!(n, 1);
+    // This build (version 1) now refuses the database written by "a newer build" (version 2).
+    assert_newer_refusal(
+        PgStore::connect(&url, PoolOptions::default())
+            .await
+            .err()
+            .expect("refused"),
+    );
+    assert_newer_refusal(migrate_url(&url).await.err().expect("refused"));
+    // A build that knows version 2 opens it.
+    PgStore::connect_expecting(&url, PoolOptions::default(), 2)
+        .await
+        .expect("version 2 build opens it");
+
+    // A failing migration rolls back whole and leaves the version where it was.
+    let broken = [
+        extra[0],
+        extra[1],
+        pg_migrate::Migration {
+            version: 3,
+            name: "0003_broken.sql",
+            sql: "CREATE TABLE half_done (x int); SELECT no_such_function();",
+        },
+    ];
+    let mut client = raw_client(&url).await;
+    assert!(pg_migrate::migrate_with(&mut client, &broken)
+        .await
+        .is_err());
+    assert_eq!(pg_migrate::current_version(&client).await.unwrap(), Some(2));
+    let half: bool = client
+        .query_one("SELECT to_regclass('half_done') IS NOT NULL", &[])
+        .await
+        .unwrap()
+        .get(0);
+    assert!(!half, "the failed file left nothing behind");
+}
+
+async fn futures_join(url: &str, ms: &[pg_migrate::Migration]) -> Vec<pg_migrate::MigrateReport> {
+    let mut tasks = Vec::new();
+    for _ in 0..2 {
+        let (url, ms) = (url.to_string(), ms.to_vec());
+        tasks.push(tokio::spawn(async move {
+            let mut c = raw_client(&url).await;
+            pg_migrate::migrate_with(&mut c, &ms).await.unwrap()
+        }));
+    }
+    let mut out = Vec::new();
+    for t in tasks {
+        out.push(t.await.unwrap());
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn postgres_refuses_foreign_tables_without_a_version() {
+    let Some(db) = TestDb::new("postgres_refuses_foreign_tables").await else {
+        return;
+    };
+    let c = raw_client(&db.url()).await;
+    c.batch_execute("CREATE TABLE shapes (id int)")
+        .await
+        .unwrap();
+    let err = migrate_url(&db.url()).await.err().expect("refused");
+    assert!(err.to_string().contains("unknown format"), "{err}");
+    let err = PgStore::connect(&db.url(), PoolOptions::default())
+        .await
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("unknown format"), "{err}");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Figures (ignored by default; `-- --ignored --nocapture`)
+// ---------------------------------------------------------------------------------------------
+
+/// Inserts N shapes of realistic sizes (30 KB signature, 60 KB payload, 500 KB OBJ text mesh)
+/// with 1 and 4 concurrent writers into sled and PostgreSQL, each insert durable before the
+/// next; prints shapes/s, MB/s and bytes on disk per shape. `SHAPESEEK_BENCH_N` (default 200)
+/// sets N; `SHAPESEEK_BENCH_PG_URL` (a server URL without database) picks the server, else the
+/// test harness's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+#[ignore]
+async fn insert_throughput() {
+    let n: u64 = std::env::var("SHAPESEEK_BENCH_N")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(200);
+    const SIZES: (usize, usize, usize) = (30 * 1024, 60 * 1024, 500 * 1024);
+    let per_shape = (SIZES.0 + SIZES.1 + SIZES.2) as f64;
+    for writers in [1u64, 4] {
+        let case = sled_case();
+        bench_one("sled", case.store.clone(), n, writers, SIZES, per_shape).await;
+        drop(case);
+
+        let db = if let Ok(base) = std::env::var("SHAPESEEK_BENCH_PG_URL") {
+            let name = format!("shapeseek_bench_{}_{writers}", std::process::id());
+            raw_client(&format!("{base}/postgres"))
+                .await
+                .batch_execute(&format!("CREATE DATABASE {name}"))
+                .await
+                .unwrap();
+            TestDb { base, name }
+        } else {
+            let Some(db) = TestDb::new("insert_throughput").await else {
+                return;
+            };
+            db
+        };
+        let store = db.store().await;
+        bench_one("postgres", store, n, writers, SIZES, per_shape).await;
+    }
+}
+
+async fn bench_one(
+    label: &str,
+    store: Arc<dyn ShapeStore>,
+    n: u64,
+    writers: u64,
+    sizes: (usize, usize, usize),
+    per_shape: f64,
+) {
+    // Build the shapes first: only the inserts are timed.
+    let mut shapes = Vec::new();
+    for i in 0..n {
+        shapes.push(shape(&*store, 50_000 + i, &["bench"], sizes).await);
+    }
+    let before = store.size_on_disk().await.unwrap();
+    let chunks: Vec<Vec<NewShape>> = (0..writers)
+        .map(|w| {
+            shapes
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| *i as u64 % writers == w)
+                .map(|(_, s)| s.clone())
+                .collect()
+        })
+        .collect();
+    let t = Instant::now();
+    let mut tasks = Vec::new();
+    for chunk in chunks {
+        let st = store.clone();
+        tasks.push(tokio::spawn(async move {
+            for s in chunk {
+                assert!(matches!(
+                    st.insert(s).await.unwrap(),
+                    InsertOutcome::Inserted(_)
+                ));
+            }
+        }));
+    }
+    for t in tasks {
+        t.await.unwrap();
+    }
+    let secs = t.elapsed().as_secs_f64();
+    assert_eq!(store.count().await.unwrap(), n);
+    let after = store.size_on_disk().await.unwrap();
+    println!(
+        "FIGURE {label} writers={writers} n={n}: {:.1} shapes/s, {:.1} MB/s of shape data, \
+         {:.0} bytes on disk per shape (raw {:.0})",
+        n as f64 / secs,
+        n as f64 * per_shape / secs / 1e6,
+        after.saturating_sub(before) as f64 / n as f64,
+        per_shape
+    );
+}
