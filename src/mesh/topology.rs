@@ -280,7 +280,12 @@ impl Topo {
         }
         let len = edges
             .iter()
-            .map(|e| norm(sub(mesh.vertices[e[0] as usize], mesh.vertices[e[1] as usize])))
+            .map(|e| {
+                norm(sub(
+                    mesh.vertices[e[0] as usize],
+                    mesh.vertices[e[1] as usize],
+                ))
+            })
             .collect();
         Ok(Self {
             n,
@@ -579,7 +584,11 @@ fn root_candidates(t: &Topo, ann: &[u128], root: u32, out: &mut Vec<Candidate>) 
     let mut order: Vec<u32> = (0..t.n as u32)
         .filter(|&v| dist[v as usize].is_finite())
         .collect();
-    order.sort_by(|&a, &b| dist[a as usize].total_cmp(&dist[b as usize]).then(a.cmp(&b)));
+    order.sort_by(|&a, &b| {
+        dist[a as usize]
+            .total_cmp(&dist[b as usize])
+            .then(a.cmp(&b))
+    });
     let mut pre = vec![0u128; t.n];
     let mut depth = vec![0u32; t.n];
     for &v in &order {
@@ -898,7 +907,10 @@ fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> 
         last
     };
     let s = extent(&dp, &dm) + extent(&dm, &dp);
-    let across = minus.iter().map(|&v| dp[v as usize]).fold(f64::INFINITY, f64::min);
+    let across = minus
+        .iter()
+        .map(|&v| dp[v as usize])
+        .fold(f64::INFINITY, f64::min);
     Some((s / length, across / length))
 }
 
@@ -988,8 +1000,10 @@ pub fn cut_handles(
             }
             if let Some(side) = sides(&cur, &t, &lp.vertices, &boundary) {
                 let sp = split(&cur, &lp.vertices, &side);
-                let minus: Vec<u32> = (cur.vertices.len() as u32..sp.vertices.len() as u32).collect();
-                if let Some((aspect, across)) = neck(&sp, &lp.vertices, &minus, lp.length, opts.growth)
+                let minus: Vec<u32> =
+                    (cur.vertices.len() as u32..sp.vertices.len() as u32).collect();
+                if let Some((aspect, across)) =
+                    neck(&sp, &lp.vertices, &minus, lp.length, opts.growth)
                 {
                     rep.neck_aspect = Some(aspect);
                     rep.handle_rel = Some(across);
@@ -1044,7 +1058,10 @@ mod tests {
         let (ann, rank) = annotations(&m, &t).unwrap();
         assert_eq!(rank, 2);
         for fe in &t.face_edges {
-            assert_eq!(ann[fe[0] as usize] ^ ann[fe[1] as usize] ^ ann[fe[2] as usize], 0);
+            assert_eq!(
+                ann[fe[0] as usize] ^ ann[fe[1] as usize] ^ ann[fe[2] as usize],
+                0
+            );
         }
     }
 
