@@ -7,6 +7,7 @@ pub mod generate;
 pub mod prepare;
 pub mod read;
 pub mod samples;
+pub mod topology;
 pub mod write;
 
 pub use read::{detect_format, read_mesh, read_path, Format, ReadLimits};
