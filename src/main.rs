@@ -14,6 +14,8 @@ use std::time::Instant;
 mod bench;
 mod cli;
 
+use cli::CliError;
+
 #[derive(Parser)]
 #[command(
     name = "shapeseek",
@@ -31,7 +33,12 @@ enum Command {
     Spectrum(SpectrumArgs),
     /// Run the REST service on an embedded index (default ./shapeseek-data, 127.0.0.1:8080).
     Serve(shapeseek::server::ServeArgs),
-    /// Upgrade an index directory to this build's schema version (after a backup copy).
+    /// Add mesh files, folders or CSV manifests to an index (via a server, or a data directory).
+    Ingest(cli::ingest::IngestArgs),
+    /// Find the shapes most similar to a mesh file or a stored shape (asks a running server).
+    Search(cli::search::SearchArgs),
+    /// Upgrade an index directory to this build's schema version (after a backup copy kept in
+    /// DATA/backups/).
     Migrate(shapeseek::server::MigrateArgs),
     /// Evaluate retrieval on a benchmark manifest (mAP per transformation, ROC, PR).
     Eval(cli::eval::EvalArgs),
@@ -138,27 +145,20 @@ pub(crate) fn generated_mesh(desc: &str) -> shapeseek::Result<Mesh> {
     Ok(mesh)
 }
 
-fn run_spectrum(args: &SpectrumArgs) -> shapeseek::Result<()> {
+fn run_spectrum(args: &SpectrumArgs) -> Result<(), CliError> {
     let t0 = Instant::now();
     let (mesh, source) = match (&args.file, &args.generate) {
         (Some(path), _) => {
-            let bytes = std::fs::read(path)?;
-            let hint = args.format.or_else(|| {
-                path.extension()
-                    .and_then(|e| e.to_str())
-                    .and_then(|e| e.parse::<Format>().ok())
-            });
+            let bytes = cli::read_file(path)?;
+            let hint = args.format.or_else(|| cli::format_hint(path));
             (
-                read_mesh(&bytes, hint, &ReadLimits::default())?,
+                read_mesh(&bytes, hint, &ReadLimits::default())
+                    .map_err(|e| CliError::at(path, e))?,
                 path.display().to_string(),
             )
         }
         (None, Some(desc)) => (generated_mesh(desc)?, format!("generated {desc}")),
-        (None, None) => {
-            return Err(shapeseek::Error::InvalidArgument(
-                "give a FILE or --generate".into(),
-            ))
-        }
+        (None, None) => return Err(CliError::usage("give a FILE or --generate")),
     };
     let read_ms = t0.elapsed().as_secs_f64() * 1e3;
     let opts = AnalyzeOptions {
@@ -180,7 +180,19 @@ fn run_spectrum(args: &SpectrumArgs) -> shapeseek::Result<()> {
         },
         laplacian: args.laplacian,
     };
-    let a = analyze(&mesh, &opts)?;
+    let a = analyze(&mesh, &opts).map_err(|e| match &args.file {
+        Some(path) => CliError::at(path, e),
+        None => e.into(),
+    })?;
+    // The solver clamps k to the vertex count: say so instead of printing fewer values.
+    let n = a.mesh.vertices.len();
+    if args.k > n {
+        return Err(CliError::usage(format!(
+            "--k {}: {source} has {n} vertices after preparation, so at most {n} eigenpairs \
+             exist; ask for --k {n} or fewer",
+            args.k
+        )));
+    }
     let total_ms = t0.elapsed().as_secs_f64() * 1e3;
     let s = &a.spectrum;
     let max_residual = shapeseek::eigen::max_or_nan(&s.residuals);
@@ -255,45 +267,68 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     // `serve` sets up its own (text or JSON) structured logging from its configuration.
     if !matches!(cli.command, Command::Serve(_)) {
+        // Collection commands print their own progress and summary: warnings only by default.
+        let default = match cli.command {
+            Command::Ingest(_) | Command::Search(_) => "warn",
+            _ => "info",
+        };
         tracing_subscriber::fmt()
             .with_env_filter(
                 tracing_subscriber::EnvFilter::try_from_default_env()
-                    .unwrap_or_else(|_| "info".into()),
+                    .unwrap_or_else(|_| default.into()),
             )
             .with_writer(std::io::stderr)
             .init();
     }
-    let result = match &cli.command {
+    let result: Result<(), CliError> = match &cli.command {
         Command::Spectrum(a) => run_spectrum(a),
-        Command::Serve(a) => a.to_config().and_then(|cfg| {
-            tokio::runtime::Builder::new_multi_thread()
-                .enable_all()
-                .build()
-                .map_err(shapeseek::Error::Io)?
-                .block_on(shapeseek::server::serve(cfg))
-        }),
-        Command::Migrate(a) => a.run().map(|msg| println!("{msg}")),
-        Command::Eval(a) => cli::eval::run(a),
-        Command::Bench(a) => bench::run(a),
-        Command::Samples(a) => shapeseek::mesh::samples::write_samples(&a.out).map(|s| {
-            println!(
-                "wrote {} sample meshes and manifest.csv to {}",
-                s.len(),
-                a.out.display()
-            )
-        }),
+        Command::Serve(a) => run_serve(a),
+        Command::Ingest(a) => match cli::ingest::run(a) {
+            Ok(true) => Ok(()),
+            // The failures are listed; the status says some inputs were not ingested.
+            Ok(false) => return ExitCode::from(1),
+            Err(e) => Err(e),
+        },
+        Command::Search(a) => cli::search::run(a),
+        Command::Migrate(a) => run_migrate(a),
+        Command::Eval(a) => cli::eval::run(a).map_err(CliError::from),
+        Command::Bench(a) => bench::run(a).map_err(CliError::from),
+        Command::Samples(a) => shapeseek::mesh::samples::write_samples(&a.out)
+            .map(|s| {
+                println!(
+                    "wrote {} sample meshes and manifest.csv to {}",
+                    s.len(),
+                    a.out.display()
+                )
+            })
+            .map_err(|e| CliError::at(&a.out, e)),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error [{}]: {e}", e.code());
-            ExitCode::from(
-                if matches!(e, shapeseek::Error::Io(_) | shapeseek::Error::Storage(_)) {
-                    74
-                } else {
-                    65
-                },
-            )
+            eprintln!("{e}");
+            ExitCode::from(e.exit)
         }
     }
+}
+
+fn run_serve(a: &shapeseek::server::ServeArgs) -> Result<(), CliError> {
+    let cfg = a.to_config()?;
+    cli::datadir::ensure_writable(&cfg.data)?;
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| CliError::new("io", format!("cannot start the runtime: {e}"), 74))?
+        .block_on(shapeseek::server::serve(cfg))?;
+    Ok(())
+}
+
+fn run_migrate(a: &shapeseek::server::MigrateArgs) -> Result<(), CliError> {
+    let dir = a.data_dir();
+    // A missing or foreign directory is refused by the runner itself, untouched.
+    if dir.join("db").is_dir() {
+        cli::datadir::ensure_writable(&dir)?;
+    }
+    println!("{}", a.run()?);
+    Ok(())
 }

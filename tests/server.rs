@@ -1082,10 +1082,11 @@ fn full_queue_answers_503_with_retry_after() {
 fn schema_versions_are_checked() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("idx");
-    assert_eq!(
-        migrate(&data).unwrap(),
-        MigrateOutcome::Created(SCHEMA_VERSION)
-    );
+    // No index there: refused, nothing created.
+    let e = migrate(&data).unwrap_err().to_string();
+    assert!(e.contains("nothing to migrate"), "{e}");
+    assert!(!data.exists());
+    drop(shapeseek::index::Store::open(&data).unwrap());
     assert_eq!(
         migrate(&data).unwrap(),
         MigrateOutcome::UpToDate(SCHEMA_VERSION)
@@ -1109,17 +1110,7 @@ fn schema_versions_are_checked() {
     let e = migrate(&data).unwrap_err().to_string();
     assert!(e.contains("no upgrade path"), "{e}");
     // Nothing was backed up when nothing could be done.
-    let backups = std::fs::read_dir(dir.path())
-        .unwrap()
-        .filter(|e| {
-            e.as_ref()
-                .unwrap()
-                .file_name()
-                .to_string_lossy()
-                .contains("backup")
-        })
-        .count();
-    assert_eq!(backups, 0);
+    assert!(!data.join(shapeseek::index::migrate::BACKUPS_DIR).exists());
 }
 
 /// The child process's address from its JSON log ("listening" line).
@@ -1495,6 +1486,11 @@ fn migrate_backs_up_then_upgrades() {
         version_of(&backup),
         0,
         "the backup is the untouched original"
+    );
+    assert_eq!(
+        backup.parent(),
+        Some(data.join(shapeseek::index::migrate::BACKUPS_DIR).as_path()),
+        "the backup is kept inside the data directory"
     );
     assert_eq!(version_of(&data), 1);
     let db = sled::open(data.join("db")).unwrap();

@@ -2,11 +2,16 @@
 //!
 //! One file per on-disk schema version lives in `migrations/` (`0001_initial.md`, ...) and says
 //! what the version holds and how to upgrade to it. Each upgrade step `vN → vN+1` is a function
-//! in [`STEPS`]; the runner copies the whole data directory to a backup first, applies the steps
-//! in order, stamps the new version and flushes. A newer or unknown version is refused and the
-//! directory is left untouched.
+//! in [`STEPS`]; the runner copies the index to a backup first, applies the steps in order,
+//! stamps the new version and flushes. A newer or unknown version is refused and the directory is
+//! left untouched; so is a directory that holds no index (a mistyped `--data` must not create
+//! one).
+//!
+//! Backups live inside the data directory, in `DATA/backups/<UTC time>-v<N>/` (see
+//! [`BACKUPS_DIR`]): a container's data volume then keeps them (its parent is not writable and
+//! not persistent), and sled, which only opens `DATA/db`, never reads them.
 
-use super::store::{open_db, read_schema_version, storage_err, Store, SCHEMA_VERSION};
+use super::store::{open_db, read_schema_version, storage_err, SCHEMA_VERSION};
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -89,11 +94,12 @@ fn add_payloads(db: &sled::Db) -> Result<()> {
     Ok(())
 }
 
+/// The folder of the data directory that holds migration backups (never opened by sled).
+pub const BACKUPS_DIR: &str = "backups";
+
 /// What [`migrate`] did.
 #[derive(Debug, Clone, PartialEq)]
 pub enum MigrateOutcome {
-    /// The directory held no index: a new one was created at this version.
-    Created(u32),
     /// Already at the current version: nothing done.
     UpToDate(u32),
     /// Upgraded; the original directory was copied to `backup` first.
@@ -108,8 +114,8 @@ pub enum MigrateOutcome {
 }
 
 /// Brings the index in `dir` to [`SCHEMA_VERSION`] (see the module docs). Fails, changing
-/// nothing, when the version is newer than this build or has no upgrade path, or when the
-/// index is in use by a running server (sled's lock).
+/// nothing, when `dir` holds no index, when the version is newer than this build or has no
+/// upgrade path, or when the index is in use by a running server (sled's lock).
 pub fn migrate(dir: &Path) -> Result<MigrateOutcome> {
     migrate_with(dir, STEPS, SCHEMA_VERSION)
 }
@@ -118,17 +124,27 @@ pub fn migrate(dir: &Path) -> Result<MigrateOutcome> {
 /// it with their own steps).
 pub fn migrate_with(dir: &Path, steps: &[Step], target: u32) -> Result<MigrateOutcome> {
     let db_path = dir.join("db");
-    if !db_path.exists() {
-        Store::open(dir)?;
-        return Ok(MigrateOutcome::Created(SCHEMA_VERSION));
+    let no_index = |why: &str| {
+        Error::InvalidArgument(format!(
+            "{}: {why}, so there is nothing to migrate (check --data / SHAPESEEK_DATA; \
+             `shapeseek serve` creates a new index)",
+            dir.display()
+        ))
+    };
+    if !dir.is_dir() {
+        return Err(no_index("no such directory"));
+    }
+    if !db_path.join("conf").is_file() {
+        return Err(no_index(
+            "not a shapeseek data directory (it has no db/conf)",
+        ));
     }
     let found = {
         let db = open_db(&db_path)?;
         read_schema_version(&db)?
     };
     let Some(from) = found else {
-        Store::open(dir)?;
-        return Ok(MigrateOutcome::Created(SCHEMA_VERSION));
+        return Err(no_index("the database in db/ has no schema version"));
     };
     if from == target {
         return Ok(MigrateOutcome::UpToDate(from));
@@ -171,33 +187,95 @@ pub fn migrate_with(dir: &Path, steps: &[Step], target: u32) -> Result<MigrateOu
     })
 }
 
-/// Copies `dir` to a new sibling `DIR.backup-vN-UNIXMS` and returns its path.
+/// Copies everything in `dir` but its [`BACKUPS_DIR`] to a new `DIR/backups/<UTC time>-v<N>/`
+/// and returns its path. A failed copy is removed again; the error names the path it is about.
 pub fn backup_dir(dir: &Path, version: u32) -> Result<PathBuf> {
-    let name = dir
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "shapeseek-data".into());
-    let target = dir.with_file_name(format!(
-        "{name}.backup-v{version}-{}",
-        super::store::now_unix_ms()
-    ));
-    copy_tree(dir, &target)?;
+    let root = dir.join(BACKUPS_DIR);
+    std::fs::create_dir_all(&root).map_err(|e| io_at(&root, "cannot create", e))?;
+    let stamp = utc_stamp(super::store::now_unix_ms());
+    let mut target = root.join(format!("{stamp}-v{version}"));
+    let mut n = 1;
+    loop {
+        match std::fs::create_dir(&target) {
+            Ok(()) => break,
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && n < 100 => {
+                n += 1;
+                target = root.join(format!("{stamp}-v{version}-{n}"));
+            }
+            Err(e) => return Err(io_at(&target, "cannot create", e)),
+        }
+    }
+    let copied = (|| -> Result<()> {
+        for entry in std::fs::read_dir(dir).map_err(|e| io_at(dir, "cannot read", e))? {
+            let entry = entry.map_err(|e| io_at(dir, "cannot read", e))?;
+            if entry.file_name() == BACKUPS_DIR {
+                continue;
+            }
+            copy_entry(&entry, &target.join(entry.file_name()))?;
+        }
+        Ok(())
+    })();
+    if let Err(e) = copied {
+        let _ = std::fs::remove_dir_all(&target);
+        return Err(e);
+    }
     Ok(target)
 }
 
+/// An I/O error that names its path (and keeps its kind).
+fn io_at(path: &Path, what: &str, e: std::io::Error) -> Error {
+    Error::Io(std::io::Error::new(
+        e.kind(),
+        format!("{what} {}: {e}", path.display()),
+    ))
+}
+
+fn copy_entry(entry: &std::fs::DirEntry, dest: &Path) -> Result<()> {
+    let src = entry.path();
+    let ty = entry
+        .file_type()
+        .map_err(|e| io_at(&src, "cannot stat", e))?;
+    if ty.is_dir() {
+        copy_tree(&src, dest)
+    } else if ty.is_file() {
+        std::fs::copy(&src, dest)
+            .map(drop)
+            .map_err(|e| io_at(dest, &format!("cannot copy {} to", src.display()), e))
+    } else {
+        Ok(())
+    }
+}
+
 fn copy_tree(from: &Path, to: &Path) -> Result<()> {
-    std::fs::create_dir_all(to)?;
-    for entry in std::fs::read_dir(from)? {
-        let entry = entry?;
-        let ty = entry.file_type()?;
-        let dest = to.join(entry.file_name());
-        if ty.is_dir() {
-            copy_tree(&entry.path(), &dest)?;
-        } else if ty.is_file() {
-            std::fs::copy(entry.path(), &dest)?;
-        }
+    std::fs::create_dir_all(to).map_err(|e| io_at(to, "cannot create", e))?;
+    for entry in std::fs::read_dir(from).map_err(|e| io_at(from, "cannot read", e))? {
+        let entry = entry.map_err(|e| io_at(from, "cannot read", e))?;
+        copy_entry(&entry, &to.join(entry.file_name()))?;
     }
     Ok(())
+}
+
+/// `YYYYMMDDTHHMMSS.mmmZ` of Unix milliseconds (UTC, proleptic Gregorian calendar).
+pub fn utc_stamp(unix_ms: u64) -> String {
+    let secs = unix_ms / 1000;
+    let (days, rem) = ((secs / 86_400) as i64, secs % 86_400);
+    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}{month:02}{day:02}T{:02}{:02}{:02}.{:03}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60,
+        unix_ms % 1000
+    )
 }
 
 /// Writes a schema version into an index directory (for tests of the refusal paths and for
@@ -210,4 +288,16 @@ pub fn stamp_version(dir: &Path, version: u32) -> Result<()> {
         .map_err(storage_err)?;
     db.flush().map_err(storage_err)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::utc_stamp;
+
+    #[test]
+    fn utc_stamps() {
+        assert_eq!(utc_stamp(0), "19700101T000000.000Z");
+        assert_eq!(utc_stamp(951_782_400_000), "20000229T000000.000Z");
+        assert_eq!(utc_stamp(1_796_140_212_345), "20261201T155012.345Z");
+    }
 }

@@ -264,12 +264,6 @@ impl MigrateArgs {
     pub fn run(&self) -> Result<String> {
         let dir = self.data_dir();
         Ok(match crate::index::migrate(&dir)? {
-            crate::index::MigrateOutcome::Created(v) => {
-                format!(
-                    "created a new index at {} (schema version {v})",
-                    dir.display()
-                )
-            }
             crate::index::MigrateOutcome::UpToDate(v) => {
                 format!(
                     "index at {} is up to date (schema version {v})",

@@ -1,0 +1,587 @@
+//! Tests of the `shapeseek` binary's collection commands and error messages: `ingest` (into a
+//! data directory and into a live server), `search`, `migrate` and `spectrum`, driven as a
+//! user would, through the built executable.
+
+use serde_json::Value;
+use std::io::{BufRead, BufReader};
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_shapeseek");
+
+struct Out {
+    code: i32,
+    stdout: String,
+    stderr: String,
+}
+
+impl Out {
+    fn json(&self) -> Value {
+        serde_json::from_str(self.stdout.trim()).unwrap_or_else(|e| {
+            panic!("stdout is not JSON ({e}): {}\n{}", self.stdout, self.stderr)
+        })
+    }
+}
+
+fn run(args: &[&str]) -> Out {
+    let o = Command::new(BIN)
+        .args(args)
+        .env_remove("SHAPESEEK_URL")
+        .env_remove("SHAPESEEK_DATA")
+        .output()
+        .expect("run shapeseek");
+    Out {
+        code: o.status.code().unwrap_or(-1),
+        stdout: String::from_utf8_lossy(&o.stdout).into_owned(),
+        stderr: String::from_utf8_lossy(&o.stderr).into_owned(),
+    }
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+/// `count` distinct generated meshes (bumpy tori of about `size` vertices) in `dir`.
+fn meshes(dir: &Path, count: usize, size: usize) -> Vec<PathBuf> {
+    let o = run(&[
+        "bench",
+        "meshes",
+        "--out",
+        s(dir),
+        "--count",
+        &count.to_string(),
+        "--size",
+        &size.to_string(),
+    ]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    v.sort();
+    assert_eq!(v.len(), count);
+    v
+}
+
+/// A running `shapeseek serve` on a free port of 127.0.0.1.
+struct Server {
+    child: Child,
+    url: String,
+}
+
+impl Server {
+    fn start(data: &Path) -> Server {
+        let port = TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let mut child = Command::new(BIN)
+            .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data"])
+            .arg(data)
+            .env("SHAPESEEK_LOG_FORMAT", "text")
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start shapeseek serve");
+        let url = format!("http://127.0.0.1:{port}");
+        let t0 = Instant::now();
+        loop {
+            if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+                break;
+            }
+            if let Ok(Some(status)) = child.try_wait() {
+                let mut err = String::new();
+                if let Some(e) = child.stderr.take() {
+                    for l in BufReader::new(e).lines().map_while(Result::ok) {
+                        err.push_str(&l);
+                        err.push('\n');
+                    }
+                }
+                panic!("serve exited with {status}: {err}");
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(60),
+                "server did not start"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Server { child, url }
+    }
+
+    fn stop(mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        let t0 = Instant::now();
+        while t0.elapsed() < Duration::from_secs(30) {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// (sha256 → (name, tags, signature bytes)) of every stored shape.
+fn index_contents(
+    data: &Path,
+) -> std::collections::BTreeMap<String, (String, Vec<String>, Vec<u8>)> {
+    let store = shapeseek::index::Store::open(data).unwrap();
+    store
+        .all()
+        .unwrap()
+        .into_iter()
+        .map(|(rec, sig)| (rec.sha256, (rec.name, rec.tags, sig)))
+        .collect()
+}
+
+#[test]
+fn ingest_into_a_data_dir_resumes_and_lists_failures() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("meshes");
+    let files = meshes(&dir, 5, 500);
+    // A sub-folder with one more mesh (found recursively), a broken file and a non-mesh file.
+    let sub = dir.join("sub");
+    std::fs::create_dir(&sub).unwrap();
+    std::fs::copy(&files[0], sub.join("again.off")).unwrap();
+    std::fs::write(sub.join("broken.obj"), "v 0 0 0\nv 1 0 0\nf 1 2 7\n").unwrap();
+    std::fs::write(sub.join("notes.txt"), "not a mesh").unwrap();
+    let missing = tmp.path().join("no-such.off");
+    let data = tmp.path().join("data");
+
+    let o = run(&[
+        "ingest",
+        "--data",
+        s(&data),
+        "--tag",
+        "batch1",
+        "--json",
+        s(&dir),
+        s(&missing),
+    ]);
+    assert_eq!(o.code, 1, "some inputs failed: {}\n{}", o.stdout, o.stderr);
+    let v = o.json();
+    assert_eq!(v["created"], 5, "{v}");
+    assert_eq!(v["existing"], 1, "the copy has the same bytes: {v}");
+    let failed = v["failed"].as_array().unwrap();
+    assert_eq!(failed.len(), 2, "{v}");
+    let broken = failed
+        .iter()
+        .find(|f| f["path"].as_str().unwrap().ends_with("broken.obj"))
+        .expect("broken.obj listed");
+    assert_eq!(broken["code"], "mesh.parse", "{broken}");
+    assert!(!broken["detail"].as_str().unwrap().is_empty());
+    let gone = failed
+        .iter()
+        .find(|f| f["path"] == s(&missing))
+        .expect("the missing path listed");
+    assert_eq!(gone["code"], "io");
+    assert!(
+        gone["detail"].as_str().unwrap().contains("No such file"),
+        "{gone}"
+    );
+    // The text summary names the same failures.
+    let o = run(&["ingest", "--data", s(&data), s(&dir)]);
+    assert_eq!(o.code, 1);
+    assert!(
+        o.stdout.contains("0 new, 6 already stored, 1 failed"),
+        "{}",
+        o.stdout
+    );
+    assert!(o.stdout.contains("broken.obj") && o.stdout.contains("mesh.parse"));
+
+    // Resumable: everything stored is skipped by content hash.
+    let o = run(&[
+        "ingest",
+        "--data",
+        s(&data),
+        "--json",
+        s(&files[1]),
+        s(&files[2]),
+    ]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let v = o.json();
+    assert_eq!(
+        (v["created"].as_u64(), v["existing"].as_u64()),
+        (Some(0), Some(2))
+    );
+
+    let stored = index_contents(&data);
+    assert_eq!(stored.len(), 5);
+    for (name, tags, _) in stored.values() {
+        assert!(name.starts_with("torus-"), "named after the file: {name}");
+        assert_eq!(tags, &vec!["batch1".to_string()]);
+    }
+}
+
+#[test]
+fn ingest_to_a_server_and_search() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("meshes");
+    let files = meshes(&dir, 6, 500);
+    // A manifest over the same files: names from `id`, tags from the other columns.
+    let mut csv = String::from("id,path,class,transform\n");
+    for (i, f) in files.iter().enumerate() {
+        let class = if i % 2 == 0 { "even" } else { "odd" };
+        csv.push_str(&format!(
+            "shape-{i},meshes/{},{class},null\n",
+            f.file_name().unwrap().to_string_lossy()
+        ));
+    }
+    csv.push_str("shape-x,meshes/missing.off,odd,null\n");
+    let manifest = tmp.path().join("manifest.csv");
+    std::fs::write(&manifest, csv).unwrap();
+
+    let server_data = tmp.path().join("server-data");
+    let server = Server::start(&server_data);
+    let url = server.url.clone();
+    let o = run(&[
+        "ingest",
+        "--url",
+        &url,
+        "--jobs",
+        "3",
+        "--json",
+        s(&manifest),
+    ]);
+    assert_eq!(o.code, 1, "{}\n{}", o.stdout, o.stderr);
+    let v = o.json();
+    assert_eq!(v["created"], 6, "{v}");
+    let failed = v["failed"].as_array().unwrap();
+    assert_eq!(failed.len(), 1, "{v}");
+    assert!(failed[0]["path"].as_str().unwrap().ends_with("missing.off"));
+    assert_eq!(failed[0]["code"], "io");
+
+    // Again: all already stored (the server answers 200 for known bytes).
+    let o = run(&["ingest", "--url", &url, s(&dir)]);
+    assert_eq!(o.code, 0, "{}\n{}", o.stdout, o.stderr);
+    assert!(
+        o.stdout.contains("0 new, 6 already stored, 0 failed"),
+        "{}",
+        o.stdout
+    );
+
+    // Search with a file: a table whose first hit is that shape (same bytes, score 0).
+    let o = run(&["search", "--url", &url, "--top-k", "3", s(&files[3])]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let lines: Vec<&str> = o.stdout.lines().collect();
+    assert!(
+        lines[0].contains("3 hit(s) among 6 candidate(s)"),
+        "{}",
+        o.stdout
+    );
+    let head: Vec<&str> = lines[1].split_whitespace().collect();
+    assert_eq!(
+        head,
+        ["rank", "score", "name", "id", "tags"],
+        "{}",
+        o.stdout
+    );
+    let first: Vec<&str> = lines[2].split_whitespace().collect();
+    assert_eq!(first[0], "1");
+    assert_eq!(first[2], "shape-3", "{}", o.stdout);
+    assert!(
+        lines[2].contains("class=odd, transform=null"),
+        "{}",
+        o.stdout
+    );
+    assert_eq!(lines.len(), 5, "{}", o.stdout);
+
+    // By id, JSON, with a tag filter and no re-ranking.
+    let o = run(&["search", "--url", &url, "--json", s(&files[0])]);
+    let id = o.json()["hits"][0]["id"].as_str().unwrap().to_string();
+    let o = run(&[
+        "search",
+        "--url",
+        &url,
+        "--id",
+        &id,
+        "--tag",
+        "class=even",
+        "--rerank",
+        "[]",
+        "--json",
+    ]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let v = o.json();
+    assert_eq!(v["stages"], serde_json::json!(["scan"]));
+    let hits = v["hits"].as_array().unwrap();
+    assert_eq!(hits.len(), 2, "the other two even shapes: {v}");
+    assert!(hits.iter().all(|h| h["id"] != id.as_str()));
+
+    // Server errors keep their problem code; file errors name the file.
+    let o = run(&["search", "--url", &url, "--id", "ffffffffffffffff"]);
+    assert_eq!(o.code, 65);
+    assert!(o.stderr.contains("[shape.not_found]"), "{}", o.stderr);
+    let broken = tmp.path().join("broken.obj");
+    std::fs::write(&broken, "v 0 0 0\nf 1 2 3\n").unwrap();
+    let o = run(&["search", "--url", &url, s(&broken)]);
+    assert_ne!(o.code, 0);
+    assert!(
+        o.stderr.contains(s(&broken)) && o.stderr.contains("[mesh."),
+        "{}",
+        o.stderr
+    );
+    let o = run(&["search", "--url", &url, "--rerank", "{oops", s(&files[0])]);
+    assert_eq!(o.code, 65);
+    assert!(o.stderr.contains("--rerank"), "{}", o.stderr);
+    server.stop();
+
+    // In process into a data directory: the same index as the server built.
+    let local = tmp.path().join("local-data");
+    let o = run(&["ingest", "--data", s(&local), "--quiet", s(&manifest)]);
+    assert_eq!(o.code, 1, "{}", o.stderr);
+    assert_eq!(index_contents(&local), index_contents(&server_data));
+}
+
+#[test]
+fn ingest_reports_an_unreachable_server_and_bad_arguments() {
+    let tmp = tempfile::tempdir().unwrap();
+    let files = meshes(&tmp.path().join("m"), 2, 300);
+    let port = TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("http://127.0.0.1:{port}");
+    let o = run(&["ingest", "--url", &url, s(&files[0])]);
+    assert_eq!(o.code, 69, "{}", o.stderr);
+    assert!(
+        o.stderr
+            .contains(&format!("cannot reach shapeseek at {url}")),
+        "{}",
+        o.stderr
+    );
+    let o = run(&["search", "--url", &url, s(&files[0])]);
+    assert_eq!(o.code, 69, "{}", o.stderr);
+    let o = run(&[
+        "ingest",
+        "--data",
+        s(&tmp.path().join("d")),
+        "--name",
+        "x",
+        s(&files[0]),
+        s(&files[1]),
+    ]);
+    assert_eq!(o.code, 65);
+    assert!(o.stderr.contains("--name names one shape"), "{}", o.stderr);
+}
+
+#[test]
+fn file_errors_name_their_path() {
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("nope.obj");
+    let o = run(&["spectrum", s(&missing)]);
+    assert_eq!(o.code, 74);
+    assert!(
+        o.stderr.contains(&format!(
+            "cannot read {}: No such file or directory",
+            s(&missing)
+        )),
+        "{}",
+        o.stderr
+    );
+    let bad = tmp.path().join("bad.off");
+    std::fs::write(&bad, "OFF\n3 1 0\n0 0 0\n1 0 0\n").unwrap();
+    let o = run(&["spectrum", s(&bad)]);
+    assert_eq!(o.code, 65);
+    assert!(
+        o.stderr.contains(&format!("{}: OFF", s(&bad))),
+        "{}",
+        o.stderr
+    );
+    let o = run(&["search", "--url", "http://127.0.0.1:9", s(&missing)]);
+    assert_eq!(o.code, 74);
+    assert!(o.stderr.contains(s(&missing)), "{}", o.stderr);
+}
+
+#[test]
+fn spectrum_refuses_more_eigenpairs_than_vertices() {
+    // icosphere:1 has 42 vertices.
+    let o = run(&["spectrum", "--generate", "icosphere:1", "--k", "1000"]);
+    assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
+    assert!(
+        o.stderr.contains("42 vertices") && o.stderr.contains("at most 42 eigenpairs"),
+        "{}",
+        o.stderr
+    );
+    let o = run(&[
+        "spectrum",
+        "--generate",
+        "icosphere:1",
+        "--k",
+        "42",
+        "--json",
+    ]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert_eq!(o.json()["k"], 42);
+}
+
+#[test]
+fn migrate_refuses_a_directory_without_an_index() {
+    let tmp = tempfile::tempdir().unwrap();
+    let typo = tmp.path().join("typo");
+    let o = run(&["migrate", "--data", s(&typo)]);
+    assert_eq!(o.code, 65, "{}", o.stdout);
+    assert!(
+        o.stderr.contains(s(&typo)) && o.stderr.contains("nothing to migrate"),
+        "{}",
+        o.stderr
+    );
+    assert!(!typo.exists(), "nothing was created");
+    // An existing folder that is not an index is left as it was.
+    let other = tmp.path().join("photos");
+    std::fs::create_dir(&other).unwrap();
+    std::fs::write(other.join("a.jpg"), "x").unwrap();
+    let o = run(&["migrate", "--data", s(&other)]);
+    assert_eq!(o.code, 65);
+    assert!(
+        o.stderr.contains("not a shapeseek data directory"),
+        "{}",
+        o.stderr
+    );
+    assert_eq!(std::fs::read_dir(&other).unwrap().count(), 1);
+}
+
+/// Makes the index in `data` a version-1 index (no payloads), as `tests/server.rs` does.
+fn make_version_1(data: &Path) {
+    let db = sled::open(data.join("db")).unwrap();
+    db.open_tree("payloads").unwrap().clear().unwrap();
+    db.flush().unwrap();
+    drop(db);
+    shapeseek::index::migrate::stamp_version(data, 1).unwrap();
+}
+
+#[test]
+fn migrate_keeps_its_backup_inside_the_data_directory() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("m");
+    meshes(&dir, 2, 400);
+    let data = tmp.path().join("data");
+    let o = run(&["ingest", "--data", s(&data), s(&dir)]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    make_version_1(&data);
+    let o = run(&["ingest", "--data", s(&data), s(&dir)]);
+    assert_ne!(o.code, 0);
+    assert!(o.stderr.contains("shapeseek migrate"), "{}", o.stderr);
+
+    let o = run(&["migrate", "--data", s(&data)]);
+    assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
+    let backup = o
+        .stdout
+        .trim()
+        .rsplit_once("backup at ")
+        .map(|(_, b)| PathBuf::from(b))
+        .unwrap_or_else(|| panic!("no backup path: {}", o.stdout));
+    assert_eq!(
+        backup.parent(),
+        Some(data.join("backups").as_path()),
+        "{}",
+        o.stdout
+    );
+    assert!(
+        backup
+            .file_name()
+            .unwrap()
+            .to_string_lossy()
+            .ends_with("-v1"),
+        "{}",
+        backup.display()
+    );
+    let db = sled::open(backup.join("db")).unwrap();
+    assert_eq!(
+        shapeseek::index::store::read_schema_version(&db).unwrap(),
+        Some(1),
+        "the backup is the version-1 original"
+    );
+    assert_eq!(db.open_tree("shapes").unwrap().len(), 2);
+    drop(db);
+    // The upgraded index opens with its backup inside, and keeps its shapes.
+    let o = run(&["ingest", "--data", s(&data), "--json", s(&dir)]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert_eq!(o.json()["existing"], 2);
+    let o = run(&["migrate", "--data", s(&data)]);
+    assert!(o.stdout.contains("up to date"), "{}", o.stdout);
+}
+
+#[test]
+fn an_unwritable_data_directory_is_named_with_a_hint() {
+    let tmp = tempfile::tempdir().unwrap();
+    // A data directory below a regular file can never be created.
+    let file = tmp.path().join("file");
+    std::fs::write(&file, "x").unwrap();
+    let below = file.join("data");
+    let o = run(&["serve", "--addr", "127.0.0.1:0", "--data", s(&below)]);
+    assert_eq!(o.code, 74, "{}", o.stderr);
+    assert!(
+        o.stderr
+            .contains(&format!("data directory {} is not writable", s(&below))),
+        "{}",
+        o.stderr
+    );
+    // Permissions: a directory the process may not write. Root may write anywhere, so as root
+    // the server is run as `nobody` (setpriv); without setpriv that half is skipped.
+    let locked = tmp.path().join("locked");
+    std::fs::create_dir(&locked).unwrap();
+    let is_root = Command::new("id")
+        .arg("-u")
+        .output()
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
+        .unwrap_or(false);
+    let out = if is_root {
+        if Command::new("setpriv").arg("--version").output().is_err() {
+            println!("SKIPPED: running as root without setpriv; the permission case is not run");
+            return;
+        }
+        // `nobody` must reach the binary and the directory; the directory stays root's, 0755.
+        make_traversable(Path::new(BIN));
+        make_traversable(&locked);
+        Command::new("setpriv")
+            .args(["--reuid=65534", "--regid=65534", "--clear-groups", BIN])
+            .args(["serve", "--addr", "127.0.0.1:0", "--data", s(&locked)])
+            .output()
+            .unwrap()
+    } else {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&locked, std::fs::Permissions::from_mode(0o555)).unwrap();
+        Command::new(BIN)
+            .args(["serve", "--addr", "127.0.0.1:0", "--data", s(&locked)])
+            .output()
+            .unwrap()
+    };
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(74), "{err}");
+    assert!(
+        err.contains(&format!("data directory {} is not writable", s(&locked))),
+        "{err}"
+    );
+    assert!(err.contains("Permission denied"), "{err}");
+    assert!(err.contains("chown -R 10001:10001"), "{err}");
+}
+
+/// Lets other users traverse every ancestor of `p` (tests only: the temporary directory and
+/// the target directory).
+fn make_traversable(p: &Path) {
+    use std::os::unix::fs::PermissionsExt;
+    for a in p.ancestors().skip(1) {
+        if let Ok(m) = std::fs::metadata(a) {
+            let mode = m.permissions().mode();
+            if mode & 0o001 == 0 {
+                let _ = std::fs::set_permissions(a, std::fs::Permissions::from_mode(mode | 0o001));
+            }
+        }
+    }
+}
