@@ -44,6 +44,17 @@ impl fmt::Display for LimitKind {
     }
 }
 
+/// Which minimum of the preparation a mesh failed (see `PrepareOptions`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DegenerateKind {
+    /// Fewer vertices than `min_vertices` after preparation.
+    TooFewVertices,
+    /// Fewer triangles than `min_faces` after preparation.
+    TooFewFaces,
+    /// The kept part holds less than `min_area_kept` of the area.
+    AreaKept,
+}
+
 /// Every failure the library reports. Never a panic on user input.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
@@ -76,6 +87,38 @@ pub enum Error {
     /// Nothing usable is left (no triangles, or every triangle degenerate).
     #[error("empty mesh: {0}")]
     EmptyMesh(String),
+    /// A polygon has more corners than the configured maximum (triangulating it would cost too
+    /// much, and a fan of that many triangles is no usable surface).
+    #[error("{format}: polygon with {corners} corners > limit {limit}{}", location.map(|l| format!(" (at {l})")).unwrap_or_default())]
+    PolygonTooLarge {
+        /// Format name.
+        format: &'static str,
+        /// Where the polygon is, when known.
+        location: Option<Location>,
+        /// Corners of the polygon.
+        corners: usize,
+        /// The configured maximum.
+        limit: usize,
+    },
+    /// A count or length declared by the file disagrees with its data (refused unless the read
+    /// is lenient).
+    #[error("{format}: {message}{}", location.map(|l| format!(" (at {l})")).unwrap_or_default())]
+    Inconsistent {
+        /// Format name.
+        format: &'static str,
+        /// Where, when known.
+        location: Option<Location>,
+        /// What disagrees.
+        message: String,
+    },
+    /// What is left after preparation cannot be a shape (too small, or too little of the input).
+    #[error("degenerate mesh: {message}")]
+    Degenerate {
+        /// Which minimum was not met.
+        kind: DegenerateKind,
+        /// The measured value and the minimum.
+        message: String,
+    },
     /// A vertex coordinate is NaN or infinite.
     #[error("non-finite coordinate at vertex {vertex}")]
     NonFinite {
@@ -134,6 +177,13 @@ impl Error {
             },
             Error::EmptyMesh(_) => "mesh.empty",
             Error::NonFinite { .. } => "mesh.non_finite",
+            Error::PolygonTooLarge { .. } => "limit.polygon_vertices",
+            Error::Inconsistent { .. } => "mesh.inconsistent",
+            Error::Degenerate { kind, .. } => match kind {
+                DegenerateKind::TooFewVertices => "mesh.too_few_vertices",
+                DegenerateKind::TooFewFaces => "mesh.too_few_faces",
+                DegenerateKind::AreaKept => "mesh.area_kept",
+            },
             Error::Numerical(_) => "spectrum.numerical",
             Error::TooFewEigenpairs { .. } => "spectrum.too_few_eigenpairs",
             Error::InvalidArgument(_) => "request.invalid",

@@ -8,10 +8,21 @@ use shapeseek::mesh::prepare::{
 use shapeseek::mesh::Mesh;
 use std::collections::{BTreeMap, BTreeSet};
 
+/// The defaults without the minimums (vertex/face counts, area kept): these tests look at the
+/// cleaning itself, on meshes that are deliberately tiny; the minimums have their own tests.
+fn lax() -> PrepareOptions {
+    PrepareOptions {
+        min_vertices: 0,
+        min_faces: 0,
+        min_area_kept: 0.0,
+        ..PrepareOptions::default()
+    }
+}
+
 fn raw() -> PrepareOptions {
     PrepareOptions {
         normalize_area: false,
-        ..PrepareOptions::default()
+        ..lax()
     }
 }
 
@@ -101,7 +112,7 @@ fn check_counts(r: &PrepareReport) {
 #[test]
 fn icosphere_passes_through_except_scale() {
     let m = icosphere(3);
-    let (out, r) = prepare(&m, &PrepareOptions::default()).unwrap();
+    let (out, r) = prepare(&m, &lax()).unwrap();
     check_counts(&r);
     assert_eq!(r.vertices_out, m.vertices.len());
     assert_eq!(r.faces_out, m.faces.len());
@@ -151,7 +162,7 @@ fn icosphere_passes_through_except_scale() {
 
 #[test]
 fn torus_has_euler_zero() {
-    let (out, r) = prepare(&torus(2.0, 0.5, 24, 12), &PrepareOptions::default()).unwrap();
+    let (out, r) = prepare(&torus(2.0, 0.5, 24, 12), &lax()).unwrap();
     assert_eq!(r.euler_characteristic, 0);
     assert_eq!((r.vertices_out, r.faces_out), (288, 576));
     assert_eq!(
@@ -167,7 +178,7 @@ fn torus_has_euler_zero() {
 
 #[test]
 fn rectangle_has_one_boundary_loop() {
-    let (_, r) = prepare(&rectangle(2.0, 1.0, 5, 3), &PrepareOptions::default()).unwrap();
+    let (_, r) = prepare(&rectangle(2.0, 1.0, 5, 3), &lax()).unwrap();
     assert_eq!(r.boundary_loops, 1);
     assert_eq!(r.boundary_edges, 2 * (5 + 3));
     assert_eq!(r.euler_characteristic, 1);
@@ -362,7 +373,7 @@ fn nonmanifold_book_is_tolerated() {
         ],
         vec![[0, 1, 2], [1, 0, 3], [0, 1, 4]],
     );
-    let (out, r) = prepare(&m, &PrepareOptions::default()).unwrap();
+    let (out, r) = prepare(&m, &lax()).unwrap();
     check_counts(&r);
     assert_eq!(r.nonmanifold_edges, 1);
     assert_eq!(r.boundary_edges, 6);
@@ -378,7 +389,7 @@ fn nonmanifold_book_is_tolerated() {
 fn flipped_face_is_counted_as_inconsistent() {
     let mut m = icosphere(1);
     m.faces[7].swap(0, 1);
-    let (_, r) = prepare(&m, &PrepareOptions::default()).unwrap();
+    let (_, r) = prepare(&m, &lax()).unwrap();
     assert_eq!(r.inconsistent_orientation_edges, 3);
     assert_eq!(
         (
@@ -395,7 +406,7 @@ fn non_finite_and_bad_index_are_rejected() {
     let mut m = icosphere(1);
     m.vertices[7][1] = f64::NAN;
     m.vertices[9][0] = f64::INFINITY;
-    let e = prepare(&m, &PrepareOptions::default()).unwrap_err();
+    let e = prepare(&m, &lax()).unwrap_err();
     assert_eq!(e.code(), "mesh.non_finite");
     assert!(
         matches!(e, shapeseek::Error::NonFinite { vertex: 7 }),
@@ -405,22 +416,19 @@ fn non_finite_and_bad_index_are_rejected() {
     let mut m = icosphere(1);
     let n = m.vertices.len() as u32;
     m.faces[4][2] = n;
-    let e = prepare(&m, &PrepareOptions::default()).unwrap_err();
+    let e = prepare(&m, &lax()).unwrap_err();
     assert_eq!(e.code(), "request.invalid");
     assert!(e.to_string().contains("face 4"), "{e}");
 }
 
 #[test]
 fn empty_and_all_degenerate_are_rejected() {
-    let e = prepare(&Mesh::default(), &PrepareOptions::default()).unwrap_err();
+    let e = prepare(&Mesh::default(), &lax()).unwrap_err();
     assert_eq!(e.code(), "mesh.empty");
     assert!(e.to_string().contains("no faces"), "{e}");
 
     let m = Mesh::new(icosphere(0).vertices, vec![]);
-    assert_eq!(
-        prepare(&m, &PrepareOptions::default()).unwrap_err().code(),
-        "mesh.empty"
-    );
+    assert_eq!(prepare(&m, &lax()).unwrap_err().code(), "mesh.empty");
 
     let m = Mesh::new(
         vec![
@@ -431,7 +439,7 @@ fn empty_and_all_degenerate_are_rejected() {
         ],
         vec![[0, 1, 2], [0, 0, 1], [0, 3, 1]],
     );
-    let e = prepare(&m, &PrepareOptions::default()).unwrap_err();
+    let e = prepare(&m, &lax()).unwrap_err();
     assert_eq!(e.code(), "mesh.empty");
     assert!(e.to_string().contains("degenerate"), "{e}");
 }
@@ -508,19 +516,19 @@ fn assert_same_up_to_permutation(
 #[test]
 fn vertex_permutation_invariance() {
     for (offset, opts) in [
-        ([0.0; 3], PrepareOptions::default()),
+        ([0.0; 3], lax()),
         (
             [0.0; 3],
             PrepareOptions {
                 components: ComponentPolicy::All,
-                ..PrepareOptions::default()
+                ..lax()
             },
         ),
         (
             [1e-9, -2e-9, 0.0],
             PrepareOptions {
                 weld_tolerance: Some(1e-6),
-                ..PrepareOptions::default()
+                ..lax()
             },
         ),
     ] {
@@ -542,7 +550,7 @@ fn vertex_permutation_invariance() {
 #[test]
 fn normalisation_is_scale_and_translation_invariant() {
     let m = messy([0.0; 3]);
-    let (a, ra) = prepare(&m, &PrepareOptions::default()).unwrap();
+    let (a, ra) = prepare(&m, &lax()).unwrap();
     for (s, t) in [
         (7.3, [0.0; 3]),
         (0.013, [2.0, -5.0, 11.0]),
@@ -550,7 +558,7 @@ fn normalisation_is_scale_and_translation_invariant() {
     ] {
         let mut scaled = m.clone();
         scaled.transform([[s, 0.0, 0.0], [0.0, s, 0.0], [0.0, 0.0, s]], t);
-        let (b, rb) = prepare(&scaled, &PrepareOptions::default()).unwrap();
+        let (b, rb) = prepare(&scaled, &lax()).unwrap();
         assert_eq!(a.faces, b.faces);
         assert_eq!(ra.faces_out, rb.faces_out);
         assert!((rb.original_area / ra.original_area - s * s).abs() < 1e-12 * s * s);
@@ -641,7 +649,7 @@ proptest! {
         let opts = PrepareOptions {
             components: if all { ComponentPolicy::All } else { ComponentPolicy::Largest },
             normalize_area: normalize,
-            ..PrepareOptions::default()
+            ..lax()
         };
         let (out, r, map) = match prepare_with_map(&m, &opts) {
             Ok(x) => x,
@@ -712,4 +720,122 @@ proptest! {
             prop_assert!((0.0..1.0).contains(&r.dropped_area_fraction));
         }
     }
+}
+
+// ---------------------------------------------------------------- minimums (issue 11)
+
+fn code(m: &Mesh, o: &PrepareOptions) -> String {
+    match prepare(m, o) {
+        Ok(_) => "ok".into(),
+        Err(e) => e.code().into(),
+    }
+}
+
+#[test]
+fn minimums_have_documented_defaults() {
+    let d = PrepareOptions::default();
+    assert_eq!((d.min_vertices, d.min_faces, d.min_area_kept), (4, 4, 0.5));
+    let o: PrepareOptions = serde_json::from_str(r#"{"min_faces": 1}"#).unwrap();
+    assert_eq!((o.min_vertices, o.min_faces, o.min_area_kept), (4, 1, 0.5));
+    for bad in [-0.1, 1.5, f64::NAN] {
+        let o = PrepareOptions {
+            min_area_kept: bad,
+            ..PrepareOptions::default()
+        };
+        assert_eq!(code(&icosphere(1), &o), "request.invalid", "{bad}");
+    }
+}
+
+#[test]
+fn too_small_shapes_are_refused_with_their_own_codes() {
+    let d = PrepareOptions::default();
+    let tri = Mesh::new(
+        vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+        vec![[0, 1, 2]],
+    );
+    assert_eq!(code(&tri, &d), "mesh.too_few_faces");
+    // 500 copies of it: duplicates dropped, one triangle left.
+    let copies = Mesh::new(tri.vertices.clone(), vec![[0, 1, 2]; 500]);
+    assert_eq!(code(&copies, &d), "mesh.too_few_faces");
+    // A quad (4 vertices, 2 triangles): enough vertices, too few faces.
+    let quad = Mesh::new(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 1.0, 0.0],
+            [0.0, 1.0, 0.0],
+        ],
+        vec![[0, 1, 2], [0, 2, 3]],
+    );
+    assert_eq!(code(&quad, &d), "mesh.too_few_faces");
+    // A tetrahedron is the smallest accepted shape; configurable both ways.
+    let tet = Mesh::new(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ],
+        vec![[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]],
+    );
+    assert_eq!(code(&tet, &d), "ok");
+    let strict = PrepareOptions {
+        min_faces: 5,
+        ..PrepareOptions::default()
+    };
+    assert_eq!(code(&tet, &strict), "mesh.too_few_faces");
+    let strict = PrepareOptions {
+        min_vertices: 5,
+        ..PrepareOptions::default()
+    };
+    assert_eq!(code(&tet, &strict), "mesh.too_few_vertices");
+    assert_eq!(code(&quad, &lax()), "ok");
+}
+
+#[test]
+fn most_of_the_area_must_be_kept() {
+    let d = PrepareOptions::default();
+    // 600 disjoint equal triangles: the largest component is 1/600 of the area.
+    let mut v = Vec::new();
+    let mut f = Vec::new();
+    for k in 0..600u32 {
+        let x = 3.0 * k as f64;
+        v.extend([[x, 0.0, 0.0], [x + 1.0, 0.0, 0.0], [x, 1.0, 0.0]]);
+        f.push([3 * k, 3 * k + 1, 3 * k + 2]);
+    }
+    let scattered = Mesh::new(v, f);
+    assert_eq!(code(&scattered, &d), "mesh.area_kept");
+    let e = prepare(&scattered, &d).unwrap_err().to_string();
+    assert!(e.contains("0.167%") && e.contains("600 components"), "{e}");
+    // Keeping every component keeps all of the area (and 600 faces).
+    let all = PrepareOptions {
+        components: ComponentPolicy::All,
+        ..PrepareOptions::default()
+    };
+    assert_eq!(code(&scattered, &all), "ok");
+    // Two equal spheres: exactly half kept, accepted; a sphere with a bigger twin: refused.
+    let a = icosphere(1);
+    let mut b = icosphere(1);
+    for p in &mut b.vertices {
+        p[0] += 5.0;
+    }
+    assert_eq!(code(&union(&a, &b), &d), "ok");
+    let mut big = icosphere(1);
+    for p in &mut big.vertices {
+        *p = [p[0] * 1.5 + 5.0, p[1] * 1.5, p[2] * 1.5];
+    }
+    let mut three = union(&a, &big);
+    let mut c = icosphere(1);
+    for p in &mut c.vertices {
+        p[0] -= 5.0;
+    }
+    three = union(&three, &c);
+    // Areas 1 : 2.25 : 1 → the largest holds 2.25/4.25 = 53% (accepted); without it 2 equal
+    // spheres of 1/3.25 each would be refused at 0.5.
+    assert_eq!(code(&three, &d), "ok");
+    let half = PrepareOptions {
+        min_area_kept: 0.6,
+        ..PrepareOptions::default()
+    };
+    assert_eq!(code(&three, &half), "mesh.area_kept");
 }

@@ -274,7 +274,7 @@ fn decode_analysis(p: &[u8]) -> Option<Analysis> {
     }
     let eigenvectors = Mat::from_fn(n, k, |i, j| ev[j * n + i]);
     Some(Analysis {
-        mesh: Mesh { vertices, faces },
+        mesh: Mesh::new(vertices, faces),
         report: header.report,
         spectrum: Spectrum {
             eigenvalues: header.eigenvalues,

@@ -25,12 +25,21 @@ pub struct Mesh {
     pub vertices: Vec<[f64; 3]>,
     /// Triangles, counter-clockwise when seen from outside where the source was consistent.
     pub faces: Vec<[u32; 3]>,
+    /// What a lenient read ([`ReadLimits::lenient`]) repaired in the file (a declared count or
+    /// length that disagreed with the data), one sentence each; empty otherwise. Carried into
+    /// the preparation report as `read_repairs`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub repairs: Vec<String>,
 }
 
 impl Mesh {
     /// Builds a mesh from positions and triangles (no validation; see the preparation step).
     pub fn new(vertices: Vec<[f64; 3]>, faces: Vec<[u32; 3]>) -> Self {
-        Self { vertices, faces }
+        Self {
+            vertices,
+            faces,
+            repairs: Vec::new(),
+        }
     }
 
     /// Total surface area (sum of triangle areas).

@@ -14,8 +14,14 @@
 //!    orientation) are dropped, keeping the first occurrence in face order. Both are counted.
 //! 4. **Connected components** over faces sharing a vertex (union–find), measured by area, are
 //!    kept according to [`ComponentPolicy`]; the dropped area fraction is reported.
+//!    If the kept components hold less than [`PrepareOptions::min_area_kept`] of that area, the
+//!    mesh is refused ([`Error::Degenerate`], code `mesh.area_kept`): a shape of which most of
+//!    the surface was thrown away (600 disconnected triangles of which one is kept) is not the
+//!    shape that was sent.
 //! 5. **Compaction.** Vertices referenced by no kept face are dropped; the kept ones stay in the
-//!    relative order of their first input index.
+//!    relative order of their first input index. Fewer than [`PrepareOptions::min_vertices`]
+//!    vertices or [`PrepareOptions::min_faces`] triangles left is refused (`mesh.too_few_vertices`,
+//!    `mesh.too_few_faces`): one triangle, or 500 copies of it, has no spectrum worth storing.
 //! 6. **Topology report** (never an error): boundary edges and loops, non-manifold edges,
 //!    inconsistently oriented edges, Euler characteristic `V − E + F`.
 //! 7. **Area normalisation** (optional, default on): the area-weighted centroid of the surface is
@@ -27,6 +33,7 @@
 //! fall into neighbouring grid cells.
 
 use super::{cross, norm, sub, Mesh};
+use crate::error::DegenerateKind;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
@@ -62,6 +69,14 @@ pub struct PrepareOptions {
     /// A face is degenerate when its area is exactly 0 or `≤ degenerate_area_ratio × mean face
     /// area` (default `1e-14`). Must be finite and `≥ 0`.
     pub degenerate_area_ratio: f64,
+    /// Fewest vertices the prepared mesh may have (default 4, a tetrahedron; `0` disables).
+    pub min_vertices: usize,
+    /// Fewest triangles the prepared mesh may have (default 4, a tetrahedron; `0` disables).
+    pub min_faces: usize,
+    /// Smallest fraction of the area of the non-degenerate, de-duplicated input that the kept
+    /// components must hold (default `0.5`: the kept part is most of the surface; `0` disables).
+    /// Only [`ComponentPolicy::Largest`] can drop area. Must be in `[0, 1]`.
+    pub min_area_kept: f64,
 }
 
 impl Default for PrepareOptions {
@@ -71,6 +86,9 @@ impl Default for PrepareOptions {
             components: ComponentPolicy::Largest,
             normalize_area: true,
             degenerate_area_ratio: 1e-14,
+            min_vertices: 4,
+            min_faces: 4,
+            min_area_kept: 0.5,
         }
     }
 }
@@ -121,6 +139,10 @@ pub struct PrepareReport {
     /// Factor applied to the (centred) coordinates: `1/sqrt(original_area)` when normalising,
     /// else 1.
     pub scale_factor: f64,
+    /// What a lenient read repaired in the file (see `ReadLimits::lenient`), one sentence each;
+    /// absent when nothing was.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub read_repairs: Vec<String>,
 }
 
 /// Cleans `mesh` (see the [module documentation](crate::mesh::prepare)) and reports what was done.
@@ -291,6 +313,18 @@ pub fn prepare_with_map(
     };
     let component_faces_dropped =
         mesh.faces.len() - degenerate_faces - duplicate_faces - faces.len();
+    let kept = 1.0 - dropped_area_fraction;
+    if kept + 1e-12 < opts.min_area_kept {
+        return Err(Error::Degenerate {
+            kind: DegenerateKind::AreaKept,
+            message: format!(
+                "the largest connected component holds {:.3}% of the area (minimum {}%: \
+                 {components} components)",
+                100.0 * kept,
+                100.0 * opts.min_area_kept
+            ),
+        });
+    }
 
     // 5. Compaction, keeping the order of the smallest input index of each cluster.
     let mut new_index = vec![u32::MAX; n];
@@ -315,6 +349,30 @@ pub fn prepare_with_map(
         .collect();
     let unreferenced_vertices = clusters - vertices.len();
 
+    if faces.len() < opts.min_faces {
+        return Err(Error::Degenerate {
+            kind: DegenerateKind::TooFewFaces,
+            message: format!(
+                "{} triangles left after preparation (minimum {}; {} degenerate, {} duplicate \
+                 dropped)",
+                faces.len(),
+                opts.min_faces,
+                degenerate_faces,
+                duplicate_faces
+            ),
+        });
+    }
+
+    if vertices.len() < opts.min_vertices {
+        return Err(Error::Degenerate {
+            kind: DegenerateKind::TooFewVertices,
+            message: format!(
+                "{} vertices left after preparation (minimum {})",
+                vertices.len(),
+                opts.min_vertices
+            ),
+        });
+    }
     // 6. Topology.
     let topo = analyse_edges(vertices.len(), &faces);
 
@@ -363,6 +421,7 @@ pub fn prepare_with_map(
             + out.faces.len() as i64,
         original_area,
         scale_factor,
+        read_repairs: mesh.repairs.clone(),
     };
     Ok((out, report, map))
 }
@@ -374,6 +433,12 @@ fn validate_options(opts: &PrepareOptions) -> Result<()> {
                 "weld_tolerance must be finite and >= 0, got {eps}"
             )));
         }
+    }
+    let a = opts.min_area_kept;
+    if !(0.0..=1.0).contains(&a) {
+        return Err(Error::InvalidArgument(format!(
+            "min_area_kept must be in [0, 1], got {a}"
+        )));
     }
     let r = opts.degenerate_area_ratio;
     if !(r.is_finite() && r >= 0.0) {

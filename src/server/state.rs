@@ -246,6 +246,7 @@ impl App {
             max_bytes: cfg.max_body_bytes,
             max_vertices: cfg.max_vertices,
             max_faces: cfg.max_faces,
+            ..ReadLimits::default()
         };
         let spec_key = engine.spec_key();
         let default_query = serde_json::to_vec(&engine.default_query())

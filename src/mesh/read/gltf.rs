@@ -12,7 +12,13 @@
 //! winding flipped under mirroring transforms. `POINTS`/`LINES*` primitives are skipped. Positions
 //! must be `VEC3`/`FLOAT`; indices `u8`/`u16`/`u32`; byte strides honoured; sparse accessors and
 //! accessors without a buffer view are refused. A mesh instanced by several nodes is added once per
-//! instance. In `TRIANGLES` mode a trailing index count that is not a multiple of 3 is ignored.
+//! instance.
+//!
+//! Declared lengths must agree with the data (else `mesh.inconsistent`, unless the read is
+//! lenient, which keeps the old behaviour and notes the repair): `asset.version` must be 2.x; a
+//! `data:` buffer must decode to exactly its `byteLength` and a GLB `BIN` chunk may exceed it
+//! only by the ≤ 3 bytes of alignment padding; a `TRIANGLES` primitive's index (or, unindexed,
+//! position) count must be a multiple of 3 (lenient: the trailing indices are ignored).
 //! Positions are f32 in glTF: they are widened exactly to f64.
 
 use super::ReadLimits;
@@ -320,6 +326,16 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
         (bytes, None)
     };
     let doc = parse_document(json)?;
+    let mut repairs = Vec::new();
+    let version = doc.as_json().asset.version.clone();
+    if version.split('.').next() != Some("2") {
+        limits.inconsistent(
+            F,
+            None,
+            format!("asset.version is {version:?}; this reader reads glTF 2.x"),
+            &mut repairs,
+        )?;
+    }
 
     // Resolve the buffers (BIN chunk or embedded data URI; anything else is refused).
     let mut buffers: Vec<Vec<u8>> = Vec::new();
@@ -340,6 +356,20 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                         bin.len()
                     )));
                 }
+                if bin.len() > b.length() + 3 {
+                    limits.inconsistent(
+                        F,
+                        None,
+                        format!(
+                            "buffer {}: byteLength {} is shorter than the BIN chunk ({} bytes; \
+                             at most 3 bytes of padding allowed)",
+                            b.index(),
+                            b.length(),
+                            bin.len()
+                        ),
+                        &mut repairs,
+                    )?;
+                }
                 Vec::new() // read from `bin` directly
             }
             gltf::buffer::Source::Uri(uri) if uri.trim_start().starts_with("data:") => {
@@ -351,6 +381,19 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                         b.length(),
                         d.len()
                     )));
+                }
+                if d.len() > b.length() {
+                    limits.inconsistent(
+                        F,
+                        None,
+                        format!(
+                            "buffer {}: byteLength {} is shorter than its data ({} bytes)",
+                            b.index(),
+                            b.length(),
+                            d.len()
+                        ),
+                        &mut repairs,
+                    )?;
                 }
                 d
             }
@@ -418,6 +461,25 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
             let np = pos_acc.count();
             limits.check_vertices(vertices.len().saturating_add(np))?;
             let n_idx = prim.indices().map_or(np, |a| a.count());
+            if matches!(mode, Mode::Triangles) && n_idx % 3 != 0 {
+                limits.inconsistent(
+                    F,
+                    None,
+                    format!(
+                        "mesh {} primitive {}: {n_idx} {} in TRIANGLES mode, not a multiple of 3 \
+                         (the last {} ignored)",
+                        mesh.index(),
+                        prim.index(),
+                        if prim.indices().is_some() {
+                            "indices"
+                        } else {
+                            "positions"
+                        },
+                        n_idx % 3
+                    ),
+                    &mut repairs,
+                )?;
+            }
             let n_tri = match mode {
                 Mode::Triangles => n_idx / 3,
                 _ => n_idx.saturating_sub(2),
@@ -467,7 +529,9 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
             }
         }
     }
-    Ok(Mesh::new(vertices, faces))
+    let mut mesh = Mesh::new(vertices, faces);
+    mesh.repairs = repairs;
+    Ok(mesh)
 }
 
 #[cfg(test)]

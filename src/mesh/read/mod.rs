@@ -19,6 +19,8 @@
 
 mod gltf;
 mod obj;
+#[cfg(test)]
+mod obj_legacy;
 mod off;
 mod ply;
 mod stl;
@@ -149,8 +151,9 @@ impl FromStr for Format {
     }
 }
 
-/// Upper bounds applied while reading untrusted input.
+/// Upper bounds applied while reading untrusted input, and how strictly it is read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct ReadLimits {
     /// Maximum input size in bytes.
     pub max_bytes: usize,
@@ -159,26 +162,83 @@ pub struct ReadLimits {
     pub max_vertices: usize,
     /// Maximum number of triangles of the resulting mesh (after triangulation).
     pub max_faces: usize,
+    /// Maximum number of corners of one polygon (OBJ, OFF, PLY faces; default 256). A larger
+    /// polygon fails with `limit.polygon_vertices` ([`Error::PolygonTooLarge`]): it is no usable
+    /// surface (ear clipping is quadratic, and a fan of thousands of slivers around one corner
+    /// makes the Laplacian so ill-conditioned that the eigensolver spends seconds failing).
+    pub max_polygon_vertices: usize,
+    /// `false` (default): a count or length the file declares that disagrees with its data
+    /// (trailing triangles after a binary STL's count, a glTF buffer longer than its
+    /// `byteLength`, an index count that is not a multiple of 3, data after the last PLY element,
+    /// a glTF `asset.version` other than 2.x) fails with `mesh.inconsistent`
+    /// ([`Error::Inconsistent`]). `true`: read as before this check existed (the declared count
+    /// wins, the rest is ignored) and list each repair in [`Mesh::repairs`], which the
+    /// preparation report carries on (`read_repairs`).
+    pub lenient: bool,
 }
 
 impl Default for ReadLimits {
-    /// 256 MiB, 2 000 000 vertices, 4 000 000 triangles.
+    /// 256 MiB, 2 000 000 vertices, 4 000 000 triangles, 256 corners per polygon, strict.
     fn default() -> Self {
         ReadLimits {
             max_bytes: 256 << 20,
             max_vertices: 2_000_000,
             max_faces: 4_000_000,
+            max_polygon_vertices: 256,
+            lenient: false,
         }
     }
 }
 
 impl ReadLimits {
-    /// No practical limit (for trusted, locally generated files).
+    /// No practical limit, and lenient (for trusted files: locally generated ones, and originals
+    /// stored before the stricter checks, which must keep reading as they did).
     pub fn unlimited() -> Self {
         ReadLimits {
             max_bytes: usize::MAX,
             max_vertices: u32::MAX as usize,
             max_faces: usize::MAX,
+            max_polygon_vertices: usize::MAX,
+            lenient: true,
+        }
+    }
+
+    /// Checks a polygon's corner count against [`ReadLimits::max_polygon_vertices`].
+    pub(crate) fn check_polygon(
+        &self,
+        format: &'static str,
+        location: Option<crate::error::Location>,
+        corners: usize,
+    ) -> Result<()> {
+        if corners > self.max_polygon_vertices {
+            return Err(Error::PolygonTooLarge {
+                format,
+                location,
+                corners,
+                limit: self.max_polygon_vertices,
+            });
+        }
+        Ok(())
+    }
+
+    /// A declared count or length disagrees with the data: an error, or (lenient) a repair noted
+    /// in `repairs`.
+    pub(crate) fn inconsistent(
+        &self,
+        format: &'static str,
+        location: Option<crate::error::Location>,
+        message: String,
+        repairs: &mut Vec<String>,
+    ) -> Result<()> {
+        if self.lenient {
+            repairs.push(format!("{format}: {message}"));
+            Ok(())
+        } else {
+            Err(Error::Inconsistent {
+                format,
+                location,
+                message,
+            })
         }
     }
 

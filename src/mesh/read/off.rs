@@ -103,6 +103,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                 format!("face with {n} vertices (at least 3 needed)"),
             ));
         }
+        limits.check_polygon(F, Some(Location::Line(ln)), n)?;
         poly.clear();
         for _ in 0..n {
             let tok = t
@@ -122,5 +123,21 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
         limits.check_faces(faces.len().saturating_add(n - 2))?;
         triangulate(&poly, &vertices, &mut faces);
     }
-    Ok(Mesh::new(vertices, faces))
+    let mut repairs = Vec::new();
+    if let Some(next) = it.next() {
+        let (ln, _) = next?;
+        let more = 1 + it.count();
+        limits.inconsistent(
+            F,
+            Some(Location::Line(ln)),
+            format!(
+                "the header declares {nv} vertices and {nf} faces, but {more} more non-empty \
+                 lines follow the last face (ignored)"
+            ),
+            &mut repairs,
+        )?;
+    }
+    let mut mesh = Mesh::new(vertices, faces);
+    mesh.repairs = repairs;
+    Ok(mesh)
 }

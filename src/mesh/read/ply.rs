@@ -473,6 +473,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                                         format!("face with {n} vertices (at least 3 needed)"),
                                     ));
                                 }
+                                limits.check_polygon(F, Some(loc), n)?;
                                 triangles = triangles.saturating_add(n - 2);
                                 limits.check_faces(triangles)?;
                                 let start = flat.len();
@@ -504,6 +505,24 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
             }
         }
     }
+    let mut repairs = Vec::new();
+    let left = match &mut body {
+        Body::Binary { data, pos, .. } => data.len().saturating_sub(*pos),
+        Body::Ascii { toks, .. } => toks.by_ref().count(),
+    };
+    if left > 0 {
+        let unit = if body.is_binary() { "bytes" } else { "values" };
+        let loc = match &body {
+            Body::Binary { pos, .. } => Some(Location::Byte(*pos)),
+            Body::Ascii { .. } => None,
+        };
+        limits.inconsistent(
+            F,
+            loc,
+            format!("{left} {unit} follow the last element the header declares (ignored)"),
+            &mut repairs,
+        )?;
+    }
     let nv = vertices.len();
     let mut faces = Vec::with_capacity(triangles);
     for (k, &(start, loc)) in polys.iter().enumerate() {
@@ -518,5 +537,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
         }
         triangulate(poly, &vertices, &mut faces);
     }
-    Ok(Mesh::new(vertices, faces))
+    let mut mesh = Mesh::new(vertices, faces);
+    mesh.repairs = repairs;
+    Ok(mesh)
 }

@@ -26,6 +26,7 @@ pub(crate) fn binary_size_matches(bytes: &[u8]) -> bool {
 
 struct Welder<'l> {
     map: HashMap<[u32; 3], u32>,
+    repairs: Vec<String>,
     vertices: Vec<[f64; 3]>,
     faces: Vec<[u32; 3]>,
     limits: &'l ReadLimits,
@@ -68,6 +69,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
             || super::contains(&bytes[..bytes.len().min(4096)], b"facet"));
     let mut w = Welder {
         map: HashMap::new(),
+        repairs: Vec::new(),
         vertices: Vec::new(),
         faces: Vec::new(),
         limits,
@@ -77,7 +79,9 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
     } else {
         read_binary(bytes, &mut w)?;
     }
-    Ok(Mesh::new(w.vertices, w.faces))
+    let mut mesh = Mesh::new(w.vertices, w.faces);
+    mesh.repairs = w.repairs;
+    Ok(mesh)
 }
 
 fn read_binary(bytes: &[u8], w: &mut Welder) -> Result<()> {
@@ -103,6 +107,20 @@ fn read_binary(bytes: &[u8], w: &mut Welder) -> Result<()> {
                 bytes.len()
             ),
         ));
+    }
+    let extra = bytes.len() as u64 - need;
+    if extra > 0 {
+        w.limits.inconsistent(
+            F,
+            Some(Location::Byte(need as usize)),
+            format!(
+                "binary STL declares {n} triangles ({need} bytes) but the file has {} bytes: \
+                 {extra} bytes ({} whole triangles) after the last declared triangle ignored",
+                bytes.len(),
+                extra / 50
+            ),
+            &mut w.repairs,
+        )?;
     }
     // Capacity is safe: the data for n triangles is present.
     w.faces.reserve(n);
