@@ -368,3 +368,26 @@ fn limits_that_contradict_each_other_are_refused_at_start() {
     };
     assert!(cfg.validate().is_err());
 }
+
+#[test]
+fn the_default_top_k_respects_a_small_max_top_k() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |c| c.max_top_k = 3);
+    // An empty index still answers (no hits); before, every search without `top_k` was a 400
+    // when `max_top_k` < 10.
+    let mut c = connect(s.addr);
+    let body = br#"{"id": "0000000000000000", "rerank": []}"#;
+    c.write_all(
+        format!(
+            "POST /v1/search HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+            body.len()
+        )
+        .as_bytes(),
+    )
+    .unwrap();
+    c.write_all(body).unwrap();
+    let r = read_response(&mut c);
+    // The unknown id is the only complaint: 404, not a 400 about top_k.
+    assert_problem(&r, 404, "shape.not_found");
+    s.stop();
+}

@@ -139,6 +139,9 @@ pub struct SearchOptions {
     pub include_self: bool,
 }
 
+/// Hits of a search that does not say `top_k` (clamped to the server's `max_top_k`).
+pub const DEFAULT_TOP_K: usize = 10;
+
 /// One search hit.
 #[derive(Debug, Clone, Serialize)]
 pub struct Hit {
@@ -709,7 +712,9 @@ impl App {
         query_sig: Option<QueryAnalysis>,
     ) -> Result<SearchResult, ApiError> {
         let t0 = Instant::now();
-        let top_k = opts.top_k.unwrap_or(10);
+        // The default never exceeds the configured limit (a server with `max_top_k` below 10
+        // answers its first `max_top_k` hits instead of refusing every search without `top_k`).
+        let top_k = opts.top_k.unwrap_or(DEFAULT_TOP_K.min(self.cfg.max_top_k));
         if top_k == 0 || top_k > self.cfg.max_top_k {
             return Err(ApiError::invalid(format!(
                 "top_k must be in 1..={}",
