@@ -222,7 +222,11 @@ fn ingest_into_a_data_dir_resumes_and_lists_failures() {
     let stored = index_contents(&data);
     assert_eq!(stored.len(), 5);
     for (name, tags, _) in stored.values() {
-        assert!(name.starts_with("torus-"), "named after the file: {name}");
+        // The copy races its original (same bytes): whichever is stored first names the shape.
+        assert!(
+            name.starts_with("torus-") || name == "again",
+            "named after the file: {name}"
+        );
         assert_eq!(tags, &vec!["batch1".to_string()]);
     }
 }

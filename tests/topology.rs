@@ -1,0 +1,286 @@
+//! Topology and handle cutting (`shapeseek::mesh::topology`) on shapes built in code: genus of
+//! closed surfaces, genuine handles that must survive (a torus, a mug handle on a sphere, a thick
+//! ring of varying section) and welded necks that must be cut (a short tube between the two tips
+//! of a bent, C-shaped body; the same with a genuine handle on the body).
+
+use shapeseek::mesh::generate::{icosphere, torus};
+use shapeseek::mesh::topology::{
+    cut_handles, short_homology_basis, surface_stats, HandleCutOptions,
+};
+use shapeseek::mesh::Mesh;
+use std::f64::consts::PI;
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
+fn unit(a: [f64; 3]) -> [f64; 3] {
+    let n = norm(a);
+    [a[0] / n, a[1] / n, a[2] / n]
+}
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+fn add(a: [f64; 3], b: [f64; 3], s: f64) -> [f64; 3] {
+    [a[0] + s * b[0], a[1] + s * b[1], a[2] + s * b[2]]
+}
+
+/// Removes every face with a vertex closer than `radius` to `centre` and returns the vertices
+/// of the new hole's boundary, ordered by angle around `axis` in the frame `(u, axis × u)`.
+fn drill(mesh: &mut Mesh, centre: [f64; 3], radius: f64, axis: [f64; 3], u: [f64; 3]) -> Vec<u32> {
+    let inside: Vec<bool> = mesh
+        .vertices
+        .iter()
+        .map(|&p| norm(sub(p, centre)) < radius)
+        .collect();
+    let before = mesh.faces.len();
+    mesh.faces
+        .retain(|f| !f.iter().any(|&v| inside[v as usize]));
+    assert!(mesh.faces.len() < before, "nothing drilled");
+    // Rim: kept vertices that shared a face with a removed vertex.
+    let mut rim: Vec<u32> = Vec::new();
+    for (i, p) in mesh.vertices.iter().enumerate() {
+        if !inside[i] && norm(sub(*p, centre)) < radius * 1.9 {
+            rim.push(i as u32);
+        }
+    }
+    // Keep only vertices on a boundary edge.
+    let mut count = std::collections::HashMap::new();
+    for f in &mesh.faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            *count.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+        }
+    }
+    let mut on_boundary = std::collections::HashSet::new();
+    for (&(a, b), &c) in &count {
+        if c == 1 {
+            on_boundary.insert(a);
+            on_boundary.insert(b);
+        }
+    }
+    rim.retain(|v| on_boundary.contains(v));
+    let v = cross(axis, u);
+    let angle = |i: u32| {
+        let d = sub(mesh.vertices[i as usize], centre);
+        dot(d, v).atan2(dot(d, u))
+    };
+    rim.sort_by(|&a, &b| angle(a).total_cmp(&angle(b)));
+    rim
+}
+
+/// Triangulates the band between two closed loops ordered in the same rotational sense.
+fn zip(faces: &mut Vec<[u32; 3]>, p: &[u32], q: &[u32]) {
+    let (np, nq) = (p.len(), q.len());
+    let (mut i, mut j) = (0, 0);
+    while i < np || j < nq {
+        if j >= nq || (i < np && (i + 1) as f64 / np as f64 <= (j + 1) as f64 / nq as f64) {
+            faces.push([p[i % np], p[(i + 1) % np], q[j % nq]]);
+            i += 1;
+        } else {
+            faces.push([p[i % np], q[(j + 1) % nq], q[j % nq]]);
+            j += 1;
+        }
+    }
+}
+
+/// A tube through the given centre points (`rings.len() ≥ 1`), each ring `m` points of radius
+/// `r` in the frame `(u_k, v_k)`, joining hole `a` (at the first ring) to hole `b` (at the last).
+fn tube(
+    mesh: &mut Mesh,
+    a: &[u32],
+    b: &[u32],
+    centres: &[[f64; 3]],
+    frames: &[([f64; 3], [f64; 3])],
+    r: f64,
+    m: usize,
+) {
+    let mut prev = a.to_vec();
+    for (c, (u, v)) in centres.iter().zip(frames) {
+        let start = mesh.vertices.len() as u32;
+        for k in 0..m {
+            let t = 2.0 * PI * k as f64 / m as f64;
+            let p = add(add(*c, *u, r * t.cos()), *v, r * t.sin());
+            mesh.vertices.push(p);
+        }
+        let ring: Vec<u32> = (start..start + m as u32).collect();
+        zip(&mut mesh.faces, &prev, &ring);
+        prev = ring;
+    }
+    zip(&mut mesh.faces, &prev, b);
+}
+
+fn sphere(subdiv: u32) -> Mesh {
+    icosphere(subdiv)
+}
+
+/// A unit sphere with a mug-like handle: a tube of radius `r` along an arc in the xz-plane that
+/// leaves the sphere at polar angles ±`half` from +x and bulges out to `reach`.
+fn mug(r: f64, half: f64, reach: f64) -> Mesh {
+    let mut m = sphere(4);
+    let p1 = [half.cos(), 0.0, half.sin()];
+    let p2 = [half.cos(), 0.0, -half.sin()];
+    let y = [0.0, 1.0, 0.0];
+    // Arc centre on the x-axis through p1, p2 and [reach, 0, 0].
+    let x0 = (reach * reach - 1.0) / (2.0 * (reach - half.cos()));
+    let c0 = [x0, 0.0, 0.0];
+    let rad = reach - x0;
+    let phi1 = (p1[2]).atan2(p1[0] - x0);
+    let radial = |phi: f64| [phi.cos(), 0.0, phi.sin()];
+    // Holes: axis = arc tangent at the end, frame u = radial of the arc.
+    let h1 = drill(&mut m, p1, r * 1.05, cross(radial(phi1), y), radial(phi1));
+    let h2 = drill(&mut m, p2, r * 1.05, cross(radial(-phi1), y), radial(-phi1));
+    let n = 40;
+    let mut centres = Vec::new();
+    let mut frames = Vec::new();
+    for k in 1..n {
+        // from phi1 down to -phi1 through 0 (the far side of the arc, at `reach`).
+        let phi = phi1 - 2.0 * phi1 * k as f64 / n as f64;
+        centres.push(add(c0, radial(phi), rad));
+        frames.push((radial(phi), y));
+    }
+    tube(&mut m, &h1, &h2, &centres, &frames, r, 16);
+    m
+}
+
+/// A torus whose tube radius varies from `r_min` to `r_max` around the ring ("arms and joined
+/// hands": a genuine, thick ring with a thinnest place).
+fn thick_ring(r_min: f64, r_max: f64) -> Mesh {
+    let mut m = torus(1.0, 1.0, 96, 24);
+    let (nu, nv) = (96, 24);
+    for (idx, p) in m.vertices.iter_mut().enumerate() {
+        let (i, j) = (idx / nv, idx % nv);
+        let u = 2.0 * PI * i as f64 / nu as f64;
+        let w = 2.0 * PI * j as f64 / nv as f64;
+        let minor = r_min + (r_max - r_min) * 0.5 * (1.0 - u.cos());
+        let rr = 1.2 + minor * w.cos();
+        *p = [rr * u.cos(), rr * u.sin(), minor * w.sin()];
+    }
+    m
+}
+
+fn genus(m: &Mesh) -> usize {
+    surface_stats(m).unwrap().genus.expect("orientable")
+}
+
+#[test]
+fn genus_of_sphere_torus_and_two_handled_sphere() {
+    assert_eq!(genus(&sphere(3)), 0);
+    assert_eq!(genus(&torus(2.0, 0.5, 30, 12)), 1);
+    let s = surface_stats(&torus(2.0, 0.5, 30, 12)).unwrap();
+    assert_eq!(
+        (s.euler_characteristic, s.boundary_loops, s.components),
+        (0, 0, 1)
+    );
+    let m = mug(0.15, 0.6, 1.8);
+    assert_eq!(genus(&m), 1);
+    // Double torus: a sphere with two handles.
+    let mut two = sphere(4);
+    let y = [0.0, 1.0, 0.0];
+    let z = [0.0, 0.0, 1.0];
+    let x = [1.0, 0.0, 0.0];
+    for (sgn, axis) in [(1.0, x), (-1.0, x)] {
+        let p1 = unit([sgn * 0.8, 0.0, 0.6]);
+        let p2 = unit([sgn * 0.8, 0.0, -0.6]);
+        let h1 = drill(&mut two, p1, 0.16, z, axis);
+        let h2 = drill(&mut two, p2, 0.16, z, axis);
+        let mut centres = Vec::new();
+        let mut frames = Vec::new();
+        for k in 1..10 {
+            let t = k as f64 / 10.0;
+            let c = add(
+                add(p1, sub(p2, p1), t),
+                [sgn, 0.0, 0.0],
+                0.8 * (PI * t).sin(),
+            );
+            centres.push(c);
+            frames.push((axis, cross(z, axis)));
+        }
+        tube(&mut two, &h1, &h2, &centres, &frames, 0.15, 16);
+        let _ = y;
+    }
+    assert_eq!(genus(&two), 2);
+    // A disc (boundary, genus 0).
+    let d = shapeseek::mesh::generate::rectangle(1.0, 1.0, 6, 6);
+    let s = surface_stats(&d).unwrap();
+    assert_eq!(
+        (s.genus, s.boundary_loops, s.euler_characteristic),
+        (Some(0), 1, 1)
+    );
+}
+
+#[test]
+fn torus_homology_basis_is_meridian_then_inner_equator() {
+    let m = torus(2.0, 0.5, 60, 16);
+    let b = short_homology_basis(&m, 8, 3).unwrap();
+    assert_eq!(b.len(), 2);
+    let meridian = 16.0 * 2.0 * 0.5 * (PI / 16.0).sin();
+    assert!(
+        (b[0].length - meridian).abs() < 1e-6 * meridian,
+        "{}",
+        b[0].length
+    );
+    let inner = 60.0 * 2.0 * 1.5 * (PI / 60.0).sin();
+    assert!(
+        b[1].length >= inner - 1e-9 && b[1].length < inner * 1.02,
+        "{}",
+        b[1].length
+    );
+}
+
+#[test]
+fn genuine_handles_survive() {
+    let opts = HandleCutOptions::default();
+    for (name, m) in [
+        ("torus", torus(3.0, 0.5, 90, 16)),
+        ("mug", mug(0.15, 0.6, 1.8)),
+        ("thick ring", thick_ring(0.22, 0.4)),
+    ] {
+        let (out, rep) = cut_handles(&m, &opts).unwrap();
+        assert_eq!(rep.cuts, 0, "{name}: {rep:?}");
+        assert_eq!(rep.after.genus, Some(1), "{name}");
+        assert_eq!(out, m, "{name}: mesh changed");
+        // Its short loop was examined and judged a long tube / ring.
+        let l = &rep.loops[0];
+        assert!(
+            l.neck_aspect.unwrap() > opts.max_neck_aspect,
+            "{name}: {l:?}"
+        );
+    }
+}
+
+#[test]
+fn bad_input_is_refused() {
+    let m = Mesh::new(vec![[0.0; 3]; 3], vec![[0, 1, 5]]);
+    assert!(surface_stats(&m).is_err());
+    let m = Mesh::new(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [1.0, 1.0, 1.0],
+        ],
+        vec![[0, 1, 2], [0, 1, 3], [0, 1, 4]],
+    );
+    assert!(matches!(
+        surface_stats(&m),
+        Err(shapeseek::mesh::topology::TopologyError::NonManifoldEdge(
+            0, 1
+        ))
+    ));
+    let opts = HandleCutOptions {
+        growth: 1.0,
+        ..Default::default()
+    };
+    assert!(cut_handles(&torus(2.0, 0.5, 10, 6), &opts).is_err());
+}
