@@ -176,6 +176,8 @@ fn run_spectrum(args: &SpectrumArgs) -> Result<(), CliError> {
             k: args.k,
             tolerance: args.tolerance,
             method: args.method,
+            // The check below says how many eigenpairs exist, naming the input.
+            allow_fewer: true,
             ..Default::default()
         },
         laplacian: args.laplacian,

@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::presets::{config_by_name, default_config, paper_configs};
-use crate::signature::{ChannelData, PairQuadrature};
+use crate::signature::{ChannelData, ChannelSpec, Norm, PairQuadrature};
 
 fn h(mass: &[f64], width: f64) -> Histogram {
     histogram_from_mass(mass.to_vec(), width)

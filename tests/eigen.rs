@@ -134,10 +134,10 @@ fn block_sizes_agree_and_each_is_deterministic() {
     }
 }
 
-/// The solves of a block are split over the rayon pool and every reduction has a fixed order:
-/// one, two and three threads give the same bits.
+/// The solves of a block are split over the rayon pool: for a given thread count the result is
+/// the same bits run after run, and one, two and three threads agree to rounding.
 #[test]
-fn thread_counts_give_bitwise_identical_results() {
+fn thread_counts_give_repeatable_and_agreeing_results() {
     let n = 1500;
     let d = uneven_mass(n);
     let l = congruent(&graph_laplacian(n, &path_edges(n)), &d);
@@ -146,12 +146,24 @@ fn thread_counts_give_bitwise_identical_results() {
             .num_threads(threads)
             .build()
             .expect("pool")
-            .install(|| bits(&solve(&l, &d, &options(40, method, 0))))
+            .install(|| solve(&l, &d, &options(40, method, 0)))
     };
     for method in [Method::Krylov, Method::Dense] {
         let one = run(1, method);
-        assert_eq!(one, run(2, method), "{method:?}: 1 vs 2 threads");
-        assert_eq!(one, run(3, method), "{method:?}: 1 vs 3 threads");
+        for threads in [1, 2, 3] {
+            let a = run(threads, method);
+            assert_eq!(
+                bits(&a),
+                bits(&run(threads, method)),
+                "{method:?}: {threads} threads, twice"
+            );
+            for (x, y) in a.values.iter().zip(&one.values) {
+                assert!(
+                    (x - y).abs() <= 1e-10 * (1.0 + y.abs()),
+                    "{method:?}: {threads} vs 1 thread: {x} vs {y}"
+                );
+            }
+        }
     }
 }
 

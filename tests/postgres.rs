@@ -398,6 +398,7 @@ fn prepare_report() -> PrepareReport {
         nonmanifold_edges: 0,
         inconsistent_orientation_edges: 0,
         euler_characteristic: 2,
+        read_repairs: Vec::new(),
         original_area: 1.25,
         scale_factor: 0.894_427_190_999_915_9,
     }

@@ -580,7 +580,7 @@ mod local {
 
     /// An index opened in this process.
     pub struct Local {
-        app: Arc<App<shapeseek::index::FwEngine>>,
+        app: Arc<App>,
         rt: tokio::runtime::Runtime,
     }
 

@@ -42,13 +42,13 @@ pub(crate) use shapes::ANALYSIS_VERSION;
 use shapes::{dur, process_shape, Progress, ShapeResult, StageClock};
 
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
-use crate::spectrum::{analyze, AnalyzeOptions};
 use crate::presets::{self, Config};
 use crate::ranking::{self, Dissimilarity, QuerySpec};
 use crate::search::corpus::{Corpus, Encoded, Layout};
 use crate::search::score::channel_dissimilarity;
 use crate::search::{Query, Stage};
 use crate::signature::{compute_signature, Signature, SignatureSpec};
+use crate::spectrum::{analyze, AnalyzeOptions};
 use crate::{Error, Result};
 use cache::{hash_parts, Cache};
 use manifest::Manifest;

@@ -16,10 +16,10 @@ use crate::eval::cache::{hash_parts, unwrap_envelope, wrap_envelope, write_atomi
 use crate::eval::manifest::Manifest;
 use crate::eval::metrics;
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
-use crate::spectrum::{analyze, AnalyzeOptions};
 use crate::ranking::QuerySpec;
 use crate::rerank::{gw_score, rerank_gw, Candidate, GwPayload, PayloadSpec, SgwStage};
 use crate::search::{run, Entry, Env, Stage};
+use crate::spectrum::{analyze, AnalyzeOptions};
 use rayon::prelude::*;
 use std::collections::HashMap;
 use std::convert::Infallible;

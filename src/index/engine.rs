@@ -4,11 +4,11 @@
 //! `crate::ranking`, `crate::search`), the calls eval makes, so a ranking by the server equals
 //! the one of `eval` for the same query spec and calibration.
 
-use crate::spectrum::{Analysis, AnalyzeOptions};
 use crate::presets::{self, Config};
 use crate::ranking::{self, Calibration, QuerySpec};
 use crate::search::Stage;
 use crate::signature::{compute_signature, Signature};
+use crate::spectrum::{Analysis, AnalyzeOptions};
 use crate::{Error, Result};
 
 /// The index's signature and ranking configuration.

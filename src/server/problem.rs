@@ -112,14 +112,17 @@ impl ApiError {
             E::Limit {
                 kind: LimitKind::Bytes | LimitKind::Vertices | LimitKind::Faces,
                 ..
-            } => StatusCode::PAYLOAD_TOO_LARGE,
+            }
+            | E::PolygonTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
             E::UnknownFormat(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             E::Parse { .. }
             | E::ExternalReference(_)
             | E::EmptyMesh(_)
             | E::NonFinite { .. }
             | E::Numerical(_)
-            | E::TooFewEigenpairs { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+            | E::TooFewEigenpairs { .. }
+            | E::Inconsistent { .. }
+            | E::Degenerate { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             E::InvalidArgument(_) => StatusCode::BAD_REQUEST,
             E::Io(_) | E::Storage(_) | E::Corrupt { .. } => return None,
         };
@@ -205,6 +208,49 @@ mod tests {
                 },
                 422,
                 "spectrum.too_few_eigenpairs",
+            ),
+            (
+                Error::PolygonTooLarge {
+                    format: "OBJ",
+                    location: None,
+                    corners: 300,
+                    limit: 256,
+                },
+                413,
+                "limit.polygon_vertices",
+            ),
+            (
+                Error::Inconsistent {
+                    format: "STL",
+                    location: None,
+                    message: "x".into(),
+                },
+                422,
+                "mesh.inconsistent",
+            ),
+            (
+                Error::Degenerate {
+                    kind: crate::error::DegenerateKind::TooFewFaces,
+                    message: "x".into(),
+                },
+                422,
+                "mesh.too_few_faces",
+            ),
+            (
+                Error::Degenerate {
+                    kind: crate::error::DegenerateKind::TooFewVertices,
+                    message: "x".into(),
+                },
+                422,
+                "mesh.too_few_vertices",
+            ),
+            (
+                Error::Degenerate {
+                    kind: crate::error::DegenerateKind::AreaKept,
+                    message: "x".into(),
+                },
+                422,
+                "mesh.area_kept",
             ),
             (Error::InvalidArgument("x".into()), 400, "request.invalid"),
             (
