@@ -360,7 +360,11 @@ fn ingest(bytes: &[u8], hint: Format, limits: &ReadLimits) -> Result<PrepareRepo
 
 /// Every failure class: its name, and for each format the malformed bytes and expected code
 /// (`None` where the class does not exist in that format, e.g. declared counts in OBJ).
-fn corpus(fmt: Fmt) -> Vec<(&'static str, Option<(Vec<u8>, &'static str)>)> {
+/// One corpus entry: failure class, and the bytes with the expected code (`None`: the class does
+/// not apply to the format).
+type Case = (&'static str, Option<(Vec<u8>, &'static str)>);
+
+fn corpus(fmt: Fmt) -> Vec<Case> {
     let base = Spec::sphere();
     let has_counts = !matches!(fmt, Fmt::Obj | Fmt::StlAscii);
     let has_indices = !matches!(fmt, Fmt::StlAscii | Fmt::StlBinary);
