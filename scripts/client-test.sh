@@ -36,21 +36,9 @@ PY="$VENV/bin/python"
 cargo build --quiet --release --bin shapeseek
 BIN="$TARGET/release/shapeseek"
 WORK="$(mktemp -d)"
-LOG="$WORK/server.log"
-SHAPESEEK_EIGENPAIRS=20 SHAPESEEK_MAX_VERTICES=20000 \
-  "$BIN" serve --data "$WORK/index" --addr 127.0.0.1:0 --log-format json >"$LOG" 2>&1 &
-PID=$!
-cleanup() { kill "$PID" 2>/dev/null || true; wait "$PID" 2>/dev/null || true; rm -rf "$WORK"; }
-trap cleanup EXIT
-ADDR=""
-for _ in $(seq 1 200); do
-  ADDR="$(grep -o '"addr":"[^"]*"' "$LOG" | head -1 | cut -d'"' -f4 || true)"
-  [ -n "$ADDR" ] && break
-  kill -0 "$PID" 2>/dev/null || { cat "$LOG"; echo "server exited"; exit 1; }
-  sleep 0.1
-done
-[ -n "$ADDR" ] || { cat "$LOG"; echo "server did not start"; exit 1; }
-URL="http://$ADDR"
+# shellcheck source=scripts/lib/test-server.sh
+. scripts/lib/test-server.sh
+SHAPESEEK_EIGENPAIRS=20 SHAPESEEK_MAX_VERTICES=20000 start_test_server "$WORK"
 echo "== server at $URL"
 
 SPEC="$WORK/openapi.yaml"

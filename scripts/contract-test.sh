@@ -24,22 +24,10 @@ fi
 cargo build --quiet --release --bin shapeseek
 BIN="$TARGET/release/shapeseek"
 DATA="$(mktemp -d)"
-LOG="$DATA/server.log"
+# shellcheck source=scripts/lib/test-server.sh
+. scripts/lib/test-server.sh
 # Small analyses (few eigenpairs) and a deep queue: the fuzzer checks the contract, not capacity.
-SHAPESEEK_EIGENPAIRS=20 SHAPESEEK_QUEUE_CAPACITY=256 SHAPESEEK_MAX_VERTICES=20000 \
-  "$BIN" serve --data "$DATA/index" --addr 127.0.0.1:0 --log-format json >"$LOG" 2>&1 &
-PID=$!
-cleanup() { kill "$PID" 2>/dev/null || true; wait "$PID" 2>/dev/null || true; rm -rf "$DATA"; }
-trap cleanup EXIT
-ADDR=""
-for _ in $(seq 1 200); do
-  ADDR="$(grep -o '"addr":"[^"]*"' "$LOG" | head -1 | cut -d'"' -f4 || true)"
-  [ -n "$ADDR" ] && break
-  kill -0 "$PID" 2>/dev/null || { cat "$LOG"; echo "server exited"; exit 1; }
-  sleep 0.1
-done
-[ -n "$ADDR" ] || { cat "$LOG"; echo "server did not start"; exit 1; }
-URL="http://$ADDR"
+SHAPESEEK_EIGENPAIRS=20 SHAPESEEK_QUEUE_CAPACITY=256 SHAPESEEK_MAX_VERTICES=20000 start_test_server "$DATA"
 # A stored shape, so that id-based operations also meet an existing resource (stateful phase
 # links are not declared; ids come from the listing).
 # (A UV sphere of 82 vertices: enough for the 20 eigenpairs the server computes.)
