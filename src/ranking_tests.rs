@@ -126,7 +126,7 @@ fn aggregation_by_hand() {
             Some(PreparedChannel::Histogram(h(&[0.0, 0.0, 1.0, 0.0], 1.0))),
         ],
     };
-    // Scored on the corpus encoding (quantised to within 2·bins/T per channel).
+    // Scored on the corpus encoding (quantised to within 4·bins/T per channel).
     use crate::search::{Encoded, Layout, Query};
     let layout = Layout::of(&Calibration {
         epoch: 1,
@@ -145,7 +145,7 @@ fn aggregation_by_hand() {
     let score = |a: &Encoded, b: &Encoded, spec: &QuerySpec| {
         Query::new(spec, &layout).score(&layout, a.view(), b.view())
     };
-    let close = |a: f64, b: f64| (a - b).abs() <= 2.0 * 8.0 / crate::search::corpus::TOTAL as f64;
+    let close = |a: f64, b: f64| (a - b).abs() <= 4.0 * 8.0 / crate::search::corpus::TOTAL as f64;
     let spec = |a: Aggregation| QuerySpec {
         channels: vec!["a".into(), "b".into()],
         dissimilarity: Dissimilarity::NL1,

@@ -5,16 +5,22 @@
 //! are vectors) is held once per corpus in a [`Layout`]. Per shape and histogram channel the
 //! corpus keeps:
 //!
-//! * the normalised bin probabilities quantised to `u16` counts summing exactly to
-//!   [`TOTAL`] (largest-remainder rounding; an empty histogram is all zeros);
+//! * the normalised bin probabilities quantised to `u16` counts `a_b` summing exactly to
+//!   `T_s = TOTAL · 2^s` ([`TOTAL`] = 65 535), with the **scale exponent** `s` (one byte) the
+//!   largest for which the largest count still fits in 16 bits: a histogram spread over many
+//!   bins gets a finer quantum `1/T_s` than a peaked one. Rounding is largest-remainder, except
+//!   that a positive probability never rounds to 0 (it gets at least one count: the symmetric
+//!   KL weighs the smallest bins most). An empty histogram is all zeros;
 //! * the in-window mass `M` (one `f64`), from which the densities follow:
-//!   `f_b = M · a_b / (T · h)`, and the cumulative sums are running sums of the counts;
-//! * the sums of the counts over groups of [`GROUP_BINS`] bins (`u16`: a group sum is at most
-//!   `T`), the first level of the lower bounds of [`super::prune`].
+//!   `f_b = M · a_b / (T_s · h)`, and the cumulative sums are running sums of the counts;
+//! * the sums of the counts over groups of [`GROUP_BINS`] bins at the common scale
+//!   `T_max = TOTAL · 2^MAX_SHIFT` (`u32`: `Σ_{b∈g} a_b · 2^{MAX_SHIFT − s}`, exact), the first
+//!   level of the lower bounds of [`super::prune`], comparable across shapes without a shift.
 //!
 //! Vector channels (ShapeDNA) are kept as `f64` vectors; a channel a shape lacks is marked
-//! absent. 256 bins × 6 channels cost 3 072 bytes of counts, 96 bytes of group sums and 48
-//! bytes of masses per shape: the three `f64` arrays per bin they replace cost 36 864.
+//! absent. 256 bins × 6 channels cost 3 072 bytes of counts, 192 bytes of group sums, 48 bytes
+//! of masses and 6 of exponents per shape: the three `f64` arrays per bin they replace cost
+//! 36 864.
 //!
 //! [`Encoded`] is one shape in the same encoding (a query, or a row being inserted); a
 //! [`ShapeRef`] views either.
@@ -22,9 +28,20 @@
 use crate::ranking::{Calibration, Prepared, PreparedChannel};
 use crate::signature::Signature;
 
-/// Sum of the quantised counts of a non-empty histogram (the largest `u16`, so that a
-/// histogram with all its mass in one bin still fits).
+/// Sum of the quantised counts of a non-empty histogram at scale exponent 0 (the largest
+/// `u16`, so that a histogram with all its mass in one bin still fits); at exponent `s` the
+/// counts sum to `TOTAL · 2^s`.
 pub const TOTAL: u32 = u16::MAX as u32;
+
+/// The largest scale exponent; the group sums are kept at this scale (below 2^24, so that a row
+/// of group sums adds up within 32 bits). A histogram of `n` bins has its largest probability
+/// at least `1/n`, so the limit binds only above 256 bins.
+pub const MAX_SHIFT: u8 = 8;
+
+/// `TOTAL · 2^s` as a float: the sum of the counts of a histogram of scale exponent `s`.
+pub fn total_at(s: u8) -> f64 {
+    ((TOTAL as u64) << s) as f64
+}
 
 /// Bins per group of the bound table (the last group of a channel may be shorter).
 pub const GROUP_BINS: usize = 32;
@@ -107,32 +124,73 @@ impl Layout {
     }
 }
 
-/// Largest-remainder quantisation of `prob` (non-negative; normalised here) to counts summing
-/// to [`TOTAL`]; all zeros when the sum is not positive. Ties of the remainders go to the lower
-/// bin.
-pub fn quantise(prob: &[f64], out: &mut [u16]) {
+/// Quantises `prob` (non-negative; normalised here) to counts summing to `TOTAL · 2^s` and
+/// returns `s`: the largest exponent ≤ [`MAX_SHIFT`] for which every count fits in a `u16`.
+/// Largest-remainder rounding (ties to the lower bin), except that a positive probability gets
+/// at least one count (the excess is taken back from the bins rounded up least, then from the
+/// largest counts). Every count is within two units of `p · T_s`; all zeros (and `s = 0`) when
+/// the sum is not positive.
+pub fn quantise(prob: &[f64], out: &mut [u16]) -> u8 {
     let total: f64 = prob.iter().map(|p| p.max(0.0)).sum();
     if !(total > 0.0 && total.is_finite()) {
         out.iter_mut().for_each(|x| *x = 0);
-        return;
+        return 0;
     }
-    let t = TOTAL as f64;
+    let max_p = prob.iter().map(|p| p.max(0.0) / total).fold(0.0, f64::max);
+    // Largest s with max_p · T_s + 2 ≤ 65 535 (a count may be rounded up by one, and a bin
+    // rounded down may not be the largest).
+    let mut shift = 0u8;
+    while shift < MAX_SHIFT && max_p * total_at(shift + 1) + 2.0 <= u16::MAX as f64 {
+        shift += 1;
+    }
+    let target = (TOTAL as u64) << shift;
+    let t = target as f64;
     let mut frac: Vec<(f64, usize)> = Vec::with_capacity(prob.len());
-    let mut sum = 0u32;
+    let mut sum = 0u64;
     for (b, (&p, o)) in prob.iter().zip(out.iter_mut()).enumerate() {
-        let x = (p.max(0.0) / total * t).min(t);
-        let f = x.floor();
+        let x = (p.max(0.0) / total * t).min(u16::MAX as f64);
+        let mut f = x.floor();
+        if p > 0.0 && f < 1.0 {
+            f = 1.0;
+        }
         *o = f as u16;
-        sum += f as u32;
+        sum += f as u64;
         frac.push((x - f, b));
     }
-    let rem = TOTAL.saturating_sub(sum) as usize;
-    if rem > 0 {
-        frac.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-        for &(_, b) in frac.iter().take(rem) {
-            out[b] += 1;
+    // Remainders, largest first (ties by bin).
+    frac.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    if sum < target {
+        // One more count for the largest remainders (a bin of zero probability never gets one).
+        let mut rem = target - sum;
+        let positive: Vec<usize> = frac
+            .iter()
+            .filter(|&&(_, b)| prob[b] > 0.0)
+            .map(|&(_, b)| b)
+            .collect();
+        for &b in positive.iter().cycle() {
+            if rem == 0 {
+                break;
+            }
+            if out[b] < u16::MAX {
+                out[b] += 1;
+                rem -= 1;
+            }
+        }
+    } else if sum > target {
+        // Forced ones took too much: take it back from the bins whose count exceeds their
+        // share most (smallest remainder), never below one count.
+        let mut excess = sum - target;
+        for &(_, b) in frac.iter().rev().cycle() {
+            if excess == 0 {
+                break;
+            }
+            if out[b] > 1 {
+                out[b] -= 1;
+                excess -= 1;
+            }
         }
     }
+    shift
 }
 
 /// One shape in the corpus encoding (a query, or a row to insert).
@@ -140,8 +198,10 @@ pub fn quantise(prob: &[f64], out: &mut [u16]) {
 pub struct Encoded {
     /// Counts, `[histogram channel][bin]`.
     pub hist: Vec<u16>,
-    /// Group sums of the counts, `[histogram channel][group]`.
-    pub groups: Vec<u16>,
+    /// Scale exponent per histogram channel (the counts sum to `TOTAL · 2^s`).
+    pub shift: Vec<u8>,
+    /// Group sums of the counts at scale [`MAX_SHIFT`], `[histogram channel][group]`.
+    pub groups: Vec<u32>,
     /// In-window mass per histogram channel.
     pub mass: Vec<f64>,
     /// Per channel (layout order): whether the shape has it.
@@ -155,8 +215,10 @@ pub struct Encoded {
 pub struct ShapeRef<'a> {
     /// Counts, `[histogram channel][bin]`.
     pub hist: &'a [u16],
-    /// Group sums, `[histogram channel][group]`.
-    pub groups: &'a [u16],
+    /// Scale exponent per histogram channel.
+    pub shift: &'a [u8],
+    /// Group sums at scale [`MAX_SHIFT`], `[histogram channel][group]`.
+    pub groups: &'a [u32],
     /// Mass per histogram channel.
     pub mass: &'a [f64],
     /// Presence per channel.
@@ -170,6 +232,7 @@ impl Encoded {
     pub fn absent(layout: &Layout) -> Encoded {
         Encoded {
             hist: vec![0; layout.histograms() * layout.bins],
+            shift: vec![0; layout.histograms()],
             groups: vec![0; layout.histograms() * layout.groups],
             mass: vec![0.0; layout.histograms()],
             present: vec![false; layout.names.len()],
@@ -187,7 +250,7 @@ impl Encoded {
                     if h.prob.len() == layout.bins =>
                 {
                     let row = &mut e.hist[k * layout.bins..(k + 1) * layout.bins];
-                    quantise(&h.prob, row);
+                    e.shift[k] = quantise(&h.prob, row);
                     e.mass[k] = if h.prob.iter().any(|&x| x > 0.0) {
                         h.mass
                     } else {
@@ -211,13 +274,14 @@ impl Encoded {
         Encoded::from_prepared(&crate::ranking::prepare_for_ranking(sig, cal), layout)
     }
 
-    /// Recomputes the group sums from the counts (after editing `hist`).
+    /// Recomputes the group sums from the counts and exponents (after editing `hist`).
     pub fn fill_groups(&mut self, layout: &Layout) {
         for k in 0..layout.histograms() {
             let row = &self.hist[k * layout.bins..(k + 1) * layout.bins];
+            let up = MAX_SHIFT - self.shift[k].min(MAX_SHIFT);
             for (g, chunk) in row.chunks(GROUP_BINS).enumerate() {
-                let s: u32 = chunk.iter().map(|&x| x as u32).sum();
-                self.groups[k * layout.groups + g] = s.min(TOTAL) as u16;
+                let s: u64 = chunk.iter().map(|&x| (x as u64) << up).sum();
+                self.groups[k * layout.groups + g] = s.min(u32::MAX as u64) as u32;
             }
         }
     }
@@ -226,6 +290,7 @@ impl Encoded {
     pub fn view(&self) -> ShapeRef<'_> {
         ShapeRef {
             hist: &self.hist,
+            shift: &self.shift,
             groups: &self.groups,
             mass: &self.mass,
             present: &self.present,
@@ -240,7 +305,8 @@ pub struct Corpus {
     layout: Layout,
     len: usize,
     hist: Vec<u16>,
-    groups: Vec<u16>,
+    shift: Vec<u8>,
+    groups: Vec<u32>,
     mass: Vec<f64>,
     present: Vec<bool>,
     vectors: Vec<Vec<f64>>,
@@ -253,6 +319,7 @@ impl Corpus {
             layout,
             len: 0,
             hist: Vec::new(),
+            shift: Vec::new(),
             groups: Vec::new(),
             mass: Vec::new(),
             present: Vec::new(),
@@ -265,6 +332,7 @@ impl Corpus {
         let mut c = Corpus::new(layout);
         let l = &c.layout;
         c.hist.reserve_exact(n * l.histograms() * l.bins);
+        c.shift.reserve_exact(n * l.histograms());
         c.groups.reserve_exact(n * l.histograms() * l.groups);
         c.mass.reserve_exact(n * l.histograms());
         c.present.reserve_exact(n * l.names.len());
@@ -312,6 +380,7 @@ impl Corpus {
         let [h, g, m, p, v] = self.strides();
         ShapeRef {
             hist: &self.hist[at * h..(at + 1) * h],
+            shift: &self.shift[at * m..(at + 1) * m],
             groups: &self.groups[at * g..(at + 1) * g],
             mass: &self.mass[at * m..(at + 1) * m],
             present: &self.present[at * p..(at + 1) * p],
@@ -324,6 +393,7 @@ impl Corpus {
         let s = self.shape(at);
         Encoded {
             hist: s.hist.to_vec(),
+            shift: s.shift.to_vec(),
             groups: s.groups.to_vec(),
             mass: s.mass.to_vec(),
             present: s.present.to_vec(),
@@ -337,7 +407,7 @@ impl Corpus {
     }
 
     /// Group sums of every shape (`[shape][histogram channel][group]`).
-    pub(crate) fn all_groups(&self) -> &[u16] {
+    pub(crate) fn all_groups(&self) -> &[u32] {
         &self.groups
     }
 
@@ -345,6 +415,7 @@ impl Corpus {
         let [h, g, m, p, v] = self.strides();
         assert!(
             e.hist.len() == h
+                && e.shift.len() == m
                 && e.groups.len() == g
                 && e.mass.len() == m
                 && e.present.len() == p
@@ -364,6 +435,7 @@ impl Corpus {
         self.check(e);
         let [h, g, m, p, v] = self.strides();
         splice(&mut self.hist, at * h, &e.hist);
+        splice(&mut self.shift, at * m, &e.shift);
         splice(&mut self.groups, at * g, &e.groups);
         splice(&mut self.mass, at * m, &e.mass);
         splice(&mut self.present, at * p, &e.present);
@@ -377,6 +449,7 @@ impl Corpus {
         self.check(e);
         let [h, g, m, p, v] = self.strides();
         self.hist[at * h..(at + 1) * h].copy_from_slice(&e.hist);
+        self.shift[at * m..(at + 1) * m].copy_from_slice(&e.shift);
         self.groups[at * g..(at + 1) * g].copy_from_slice(&e.groups);
         self.mass[at * m..(at + 1) * m].copy_from_slice(&e.mass);
         self.present[at * p..(at + 1) * p].copy_from_slice(&e.present);
@@ -388,6 +461,7 @@ impl Corpus {
         assert!(at < self.len, "remove position {at} >= len {}", self.len);
         let [h, g, m, p, v] = self.strides();
         self.hist.drain(at * h..(at + 1) * h);
+        self.shift.drain(at * m..(at + 1) * m);
         self.groups.drain(at * g..(at + 1) * g);
         self.mass.drain(at * m..(at + 1) * m);
         self.present.drain(at * p..(at + 1) * p);
@@ -398,7 +472,8 @@ impl Corpus {
     /// Heap bytes held (capacity of the arrays, vectors' contents included).
     pub fn heap_bytes(&self) -> usize {
         self.hist.capacity() * 2
-            + self.groups.capacity() * 2
+            + self.shift.capacity()
+            + self.groups.capacity() * 4
             + self.mass.capacity() * 8
             + self.present.capacity()
             + self.vectors.capacity() * std::mem::size_of::<Vec<f64>>()

@@ -35,11 +35,13 @@
 //! contributes 0. Each bound is finally lowered by a relative 10⁻⁹ and an absolute 10⁻¹² so
 //! that rounding can never make it exceed the exact score.
 
-use super::corpus::{Corpus, ShapeRef, Slot, GROUP_BINS, TOTAL};
+use super::corpus::{total_at, Corpus, ShapeRef, Slot, GROUP_BINS, MAX_SHIFT};
 use super::score::Query;
 use crate::ranking::{Dissimilarity, BHATTACHARYYA_FLOOR, KL_EPSILON};
+use crate::signature::Aggregation;
 use rayon::prelude::*;
 use std::cmp::Ordering;
+use std::collections::BinaryHeap;
 
 /// The smallest first batch of exactly scored candidates (it doubles after each batch).
 const FIRST_BATCH: usize = 256;
@@ -69,8 +71,17 @@ pub fn top_k(
     search(corpus, q, query, k, keep, FIRST_BATCH.max(4 * k))
 }
 
-/// The filter-and-refine loop; `first_batch` candidates (by bound) are scored first, then
-/// twice as many per round until the bounds exceed the `k`-th score.
+/// The filter-and-refine loop.
+///
+/// 1. One parallel pass over the group sums computes every kept candidate's bound (into one
+///    `f64` per position; NaN for a position `keep` rejects) and, per worker, the `first_batch`
+///    candidates of smallest bound (a bounded max-heap: most candidates are rejected by one
+///    comparison). The heaps merged give the `first_batch` smallest bounds overall.
+/// 2. Those are scored exactly; the `k`-th best score `τ` is a valid cut-off: a candidate
+///    bounded above `τ` can never enter. A second parallel pass collects the candidates with a
+///    bound `≤ τ` that were not scored yet.
+/// 3. They are scored in batches of increasing bound (doubling), `τ` tightening after each
+///    batch, until every remaining bound exceeds `τ`.
 pub(crate) fn search(
     corpus: &Corpus,
     q: &Query,
@@ -82,52 +93,119 @@ pub(crate) fn search(
     if k == 0 || corpus.is_empty() {
         return (Vec::new(), 0);
     }
-    let layout = corpus.layout();
     let bounder = Bounder::new(corpus, q, query);
-    let mut bounds: Vec<(f64, u32)> = (0..corpus.len())
-        .into_par_iter()
-        .with_min_len(4096)
-        .filter(|&i| keep(i))
-        .map(|i| (bounder.bound(i), i as u32))
+    let first_batch = first_batch.max(k).max(1);
+    let mut bounds = vec![f64::INFINITY; corpus.len()];
+    // Pass 1: every bound, and the `first_batch` smallest of each worker.
+    let heaps: Vec<BinaryHeap<Cand>> = bounds
+        .par_chunks_mut(CHUNK)
+        .enumerate()
+        .fold(BinaryHeap::new, |mut heap, (c, chunk)| {
+            let base = c * CHUNK;
+            bounder.fill(base, chunk, keep);
+            for (j, &b) in chunk.iter().enumerate() {
+                if b.is_nan() {
+                    continue; // not kept
+                }
+                let cand = Cand(b, (base + j) as u32);
+                if heap.len() < first_batch {
+                    heap.push(cand);
+                } else if cand < *heap.peek().expect("non-empty") {
+                    heap.pop();
+                    heap.push(cand);
+                }
+            }
+            heap
+        })
         .collect();
-    let by_bound =
-        |a: &(f64, u32), b: &(f64, u32)| -> Ordering { a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)) };
+    let mut head: Vec<Cand> = heaps.into_iter().flatten().collect();
+    head.sort_unstable();
+    head.truncate(first_batch);
     let mut best: Vec<(usize, f64)> = Vec::with_capacity(2 * k);
     let mut scored = 0;
-    let mut rest: &mut [(f64, u32)] = &mut bounds;
-    let mut batch = first_batch.max(1);
+    score_into(corpus, q, query, &head, &mut best, k, &mut scored);
+    // Pass 2: the candidates that can still enter, not yet scored (none when every kept
+    // candidate was in the head). `NaN` (not kept) fails `b <= cutoff`.
+    let cutoff = kth(&best, k);
+    let mut rest: Vec<Cand> = match head.last() {
+        Some(&last) if head.len() == first_batch => bounds
+            .par_iter()
+            .enumerate()
+            .with_min_len(CHUNK)
+            .filter(|&(i, &b)| b <= cutoff && Cand(b, i as u32) > last)
+            .map(|(i, &b)| Cand(b, i as u32))
+            .collect(),
+        _ => Vec::new(),
+    };
+    let mut rest: &mut [Cand] = &mut rest;
+    let mut batch = first_batch.saturating_mul(2);
     while !rest.is_empty() {
-        let take = batch.min(rest.len());
-        if take < rest.len() {
-            rest.select_nth_unstable_by(take - 1, by_bound);
-        }
-        let (head, tail) = rest.split_at_mut(take);
-        // Every candidate left in `tail` has a bound ≥ every bound in `head`.
         let cutoff = kth(&best, k);
-        let todo: Vec<usize> = head
-            .iter()
-            .filter(|&&(b, _)| b <= cutoff)
-            .map(|&(_, i)| i as usize)
-            .collect();
-        if todo.is_empty() {
+        rest = keep_at_most(rest, cutoff);
+        if rest.is_empty() {
             break;
         }
-        scored += todo.len();
-        let mut new: Vec<(usize, f64)> = todo
-            .par_iter()
-            .with_min_len(64)
-            .map(|&i| (i, q.score(layout, query, corpus.shape(i))))
-            .collect();
-        best.append(&mut new);
-        best.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
-        best.truncate(k);
-        // Candidates bounded above the new k-th score can never enter: drop them now, so that
-        // the next selection runs over the few that remain.
-        let cutoff = kth(&best, k);
-        rest = keep_at_most(tail, cutoff);
+        let take = batch.min(rest.len());
+        if take < rest.len() {
+            rest.select_nth_unstable(take - 1);
+        }
+        let (now, tail) = rest.split_at_mut(take);
+        // Every candidate left in `tail` has a bound ≥ every bound in `now`.
+        score_into(corpus, q, query, now, &mut best, k, &mut scored);
+        rest = tail;
         batch = batch.saturating_mul(2);
     }
     (best, scored)
+}
+
+/// Positions per work item of the bound pass.
+const CHUNK: usize = 4096;
+
+/// A candidate: its bound and position, ordered by bound (`total_cmp`), ties by position.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Cand(f64, u32);
+impl Eq for Cand {}
+impl PartialOrd for Cand {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Cand {
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.0.total_cmp(&other.0).then(self.1.cmp(&other.1))
+    }
+}
+
+/// Scores the candidates of `todo` whose bound is at most the current `k`-th score, merges
+/// them into `best` (kept sorted, at most `k`), and counts them in `scored`.
+fn score_into(
+    corpus: &Corpus,
+    q: &Query,
+    query: ShapeRef<'_>,
+    todo: &[Cand],
+    best: &mut Vec<(usize, f64)>,
+    k: usize,
+    scored: &mut usize,
+) {
+    let cutoff = kth(best, k);
+    let todo: Vec<usize> = todo
+        .iter()
+        .filter(|c| c.0 <= cutoff)
+        .map(|c| c.1 as usize)
+        .collect();
+    if todo.is_empty() {
+        return;
+    }
+    *scored += todo.len();
+    let layout = corpus.layout();
+    let mut new: Vec<(usize, f64)> = todo
+        .par_iter()
+        .with_min_len(64)
+        .map(|&i| (i, q.score(layout, query, corpus.shape(i))))
+        .collect();
+    best.append(&mut new);
+    best.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+    best.truncate(k);
 }
 
 /// The `k`-th best score so far (∞ while fewer than `k`, or when it is NaN).
@@ -139,7 +217,7 @@ fn kth(best: &[(usize, f64)], k: usize) -> f64 {
 }
 
 /// Moves the entries with bound ≤ `cutoff` to the front and returns them.
-fn keep_at_most(v: &mut [(f64, u32)], cutoff: f64) -> &mut [(f64, u32)] {
+fn keep_at_most(v: &mut [Cand], cutoff: f64) -> &mut [Cand] {
     if cutoff == f64::INFINITY {
         return v;
     }
@@ -156,7 +234,7 @@ fn keep_at_most(v: &mut [(f64, u32)], cutoff: f64) -> &mut [(f64, u32)] {
 /// One compared channel of the query: histogram slot, its group sums and mass, bin width.
 struct QueryChannel {
     slot: usize,
-    groups: Vec<u16>,
+    groups: Vec<u32>,
     mass: f64,
     h: f64,
 }
@@ -169,12 +247,16 @@ pub(crate) struct Bounder<'a> {
     channels: Vec<Option<QueryChannel>>,
     /// Group sums per shape (histogram channels × groups).
     stride: usize,
+    /// nL1 under a sum (or a single channel), every compared channel at most once: the query's
+    /// group sums over the whole row and the ranges of the row that are compared, so that the
+    /// bound is one integer loop per range, `Σ_j |q_j − c_j| / T_max`.
+    nl1_row: Option<(Vec<u32>, Vec<std::ops::Range<usize>>)>,
 }
 
 impl<'a> Bounder<'a> {
     pub(crate) fn new(corpus: &'a Corpus, q: &'a Query, query: ShapeRef<'_>) -> Bounder<'a> {
         let l = corpus.layout();
-        let channels = q
+        let channels: Vec<Option<QueryChannel>> = q
             .channels
             .iter()
             .map(|c| {
@@ -190,11 +272,71 @@ impl<'a> Bounder<'a> {
                 }
             })
             .collect();
+        let stride = l.histograms() * l.groups;
+        let summed: Option<Vec<&Option<QueryChannel>>> = match q.aggregation {
+            Aggregation::Sum => Some(channels.iter().collect()),
+            Aggregation::Single => Some(channels.iter().take(1).collect()),
+            _ => None,
+        };
+        let nl1_row = match summed {
+            // A row sums within `u32`: entries below 2^24 (scale 2^MAX_SHIFT ≤ 2^8), ≤ 255 of them.
+            Some(used) if q.dissimilarity == Dissimilarity::NL1 && stride <= 255 => {
+                let mut row = vec![0u32; stride];
+                let mut slots: Vec<usize> = used.into_iter().flatten().map(|qc| qc.slot).collect();
+                for qc in channels.iter().flatten() {
+                    let r = qc.slot * l.groups..(qc.slot + 1) * l.groups;
+                    row[r].copy_from_slice(&qc.groups);
+                }
+                slots.sort_unstable();
+                let n = slots.len();
+                slots.dedup();
+                (slots.len() == n).then(|| {
+                    let mut ranges: Vec<std::ops::Range<usize>> = Vec::new();
+                    for k in slots {
+                        let r = k * l.groups..(k + 1) * l.groups;
+                        match ranges.last_mut() {
+                            Some(last) if last.end == r.start => last.end = r.end,
+                            _ => ranges.push(r),
+                        }
+                    }
+                    (row, ranges)
+                })
+            }
+            _ => None,
+        };
         Bounder {
             corpus,
             q,
             channels,
-            stride: l.histograms() * l.groups,
+            stride,
+            nl1_row,
+        }
+    }
+
+    /// Writes the bound of every position `base + j` into `out[j]`, or NaN where `keep`
+    /// rejects the position.
+    pub(crate) fn fill(&self, base: usize, out: &mut [f64], keep: &(dyn Fn(usize) -> bool + Sync)) {
+        match &self.nl1_row {
+            Some((qrow, ranges)) => {
+                let rows =
+                    &self.corpus.all_groups()[base * self.stride..(base + out.len()) * self.stride];
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU supports AVX2 (checked just above).
+                    unsafe { fill_nl1_avx2(rows, self.stride, qrow, ranges, base, out, keep) };
+                    return;
+                }
+                fill_nl1(rows, self.stride, qrow, ranges, base, out, keep);
+            }
+            None => {
+                for (j, o) in out.iter_mut().enumerate() {
+                    *o = if keep(base + j) {
+                        self.bound(base + j)
+                    } else {
+                        f64::NAN
+                    };
+                }
+            }
         }
     }
 
@@ -213,13 +355,13 @@ impl<'a> Bounder<'a> {
                     let g = &row[qc.slot * gs..(qc.slot + 1) * gs];
                     if d == Dissimilarity::NL1 {
                         // The common case, as one integer loop.
-                        let s: u32 = qc
+                        let s: u64 = qc
                             .groups
                             .iter()
                             .zip(g)
-                            .map(|(&x, &y)| (x as i32 - y as i32).unsigned_abs())
+                            .map(|(&x, &y)| x.abs_diff(y) as u64)
                             .sum();
-                        s as f64 / TOTAL as f64
+                        s as f64 / total_at(MAX_SHIFT)
                     } else {
                         let v = channel_bound(
                             d,
@@ -243,6 +385,55 @@ impl<'a> Bounder<'a> {
     }
 }
 
+/// The nL1 bound of every row of `rows` (`stride` group sums each) over the compared `ranges`,
+/// as [`Bounder::fill`] writes it. Inlined into [`fill_nl1_avx2`] so that the same loop is
+/// compiled once for the baseline CPU and once with AVX2.
+#[inline(always)]
+fn fill_nl1(
+    rows: &[u32],
+    stride: usize,
+    qrow: &[u32],
+    ranges: &[std::ops::Range<usize>],
+    base: usize,
+    out: &mut [f64],
+    keep: &(dyn Fn(usize) -> bool + Sync),
+) {
+    let t = total_at(MAX_SHIFT);
+    for (j, (o, row)) in out.iter_mut().zip(rows.chunks_exact(stride)).enumerate() {
+        *o = if keep(base + j) {
+            let mut s = 0u32;
+            for r in ranges {
+                s += row[r.clone()]
+                    .iter()
+                    .zip(&qrow[r.clone()])
+                    .map(|(&c, &x)| c.abs_diff(x))
+                    .sum::<u32>();
+            }
+            with_margin(s as f64 / t)
+        } else {
+            f64::NAN
+        };
+    }
+}
+
+/// [`fill_nl1`] compiled for AVX2 (runtime dispatch in [`Bounder::fill`]).
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn fill_nl1_avx2(
+    rows: &[u32],
+    stride: usize,
+    qrow: &[u32],
+    ranges: &[std::ops::Range<usize>],
+    base: usize,
+    out: &mut [f64],
+    keep: &(dyn Fn(usize) -> bool + Sync),
+) {
+    fill_nl1(rows, stride, qrow, ranges, base, out, keep)
+}
+
 /// Lowers a bound by a relative 10⁻⁹ and an absolute 10⁻¹²; NaN and negative values become 0.
 pub(crate) fn with_margin(b: f64) -> f64 {
     if b.is_nan() || b <= 0.0 {
@@ -256,14 +447,14 @@ pub(crate) fn with_margin(b: f64) -> f64 {
 /// (candidate, mass `mb`), bin width `h`, `bins` bins (see the module docs).
 pub(crate) fn channel_bound(
     d: Dissimilarity,
-    a: &[u16],
+    a: &[u32],
     ma: f64,
-    b: &[u16],
+    b: &[u32],
     mb: f64,
     h: f64,
     bins: usize,
 ) -> f64 {
-    let t = TOTAL as f64;
+    let t = total_at(MAX_SHIFT);
     let w = |g: usize| GROUP_BINS.min(bins - g * GROUP_BINS) as f64;
     let pairs = || a.iter().zip(b).map(|(&x, &y)| (x as i64, y as i64));
     let (fa, fb) = (ma / t, mb / t);
@@ -278,7 +469,7 @@ pub(crate) fn channel_bound(
             if h > 0.0 {
                 let s: f64 = pairs()
                     .enumerate()
-                    .map(|(g, (x, y))| ((x - y) * (x - y)) as f64 / w(g))
+                    .map(|(g, (x, y))| ((x - y) as f64).powi(2) / w(g))
                     .sum();
                 (s / (t * t) / h).sqrt()
             } else {
@@ -323,14 +514,17 @@ pub(crate) fn channel_bound(
             .sum::<f64>()
             .max(0.0),
         Dissimilarity::Bhattacharyya => {
-            let bc = pairs().map(|(x, y)| ((x * y) as f64).sqrt()).sum::<f64>() / t;
+            let bc = pairs()
+                .map(|(x, y)| (x as f64 * y as f64).sqrt())
+                .sum::<f64>()
+                / t;
             -(bc.clamp(BHATTACHARYYA_FLOOR, 1.0)).ln()
         }
         Dissimilarity::Chi2 => {
             2.0 * pairs()
                 .map(|(x, y)| {
                     if x + y > 0 {
-                        ((x - y) * (x - y)) as f64 / (x + y) as f64
+                        ((x - y) as f64).powi(2) / (x + y) as f64
                     } else {
                         0.0
                     }

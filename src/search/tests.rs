@@ -1,8 +1,8 @@
 //! Tests of [`crate::search`] (`cargo test --release --lib search`).
 
-use super::corpus::{quantise, Slot, GROUP_BINS, TOTAL};
+use super::corpus::{quantise, total_at, Slot, GROUP_BINS, TOTAL};
 use super::prune::{channel_bound, search, with_margin};
-use super::score::histogram;
+use super::score::{histogram, Counts};
 use super::*;
 use crate::ranking::{
     histogram_dissimilarity, histogram_from_mass, Calibration, Dissimilarity, Histogram, Prepared,
@@ -59,6 +59,15 @@ fn masses(bins: usize) -> impl Strategy<Value = Vec<f64>> {
     )
 }
 
+/// The first histogram channel of `e`.
+fn counts(e: &Encoded) -> Counts<'_> {
+    Counts {
+        counts: &e.hist,
+        shift: e.shift[0],
+        mass: e.mass[0],
+    }
+}
+
 /// One encoded single-channel histogram and its group sums.
 fn encode(mass: &[f64], width: f64) -> Encoded {
     let l = layout(&["a"], mass.len(), width * mass.len() as f64);
@@ -72,21 +81,29 @@ fn encode(mass: &[f64], width: f64) -> Encoded {
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(400))]
 
-    /// Quantised counts sum to `T` (or are all zero) and each is within one unit of `p·T`.
+    /// Quantised counts sum to `T_s` (or are all zero), move by less than `2·bins` units in
+    /// all, keep every positive probability positive and every zero zero, and the exponent is
+    /// the largest that fits.
     #[test]
     fn quantisation_is_exact_in_sum(m in (1usize..300).prop_flat_map(masses)) {
         let h = hist(&m, 1.0);
         let mut out = vec![0u16; m.len()];
-        quantise(&h.prob, &mut out);
-        let sum: u32 = out.iter().map(|&x| x as u32).sum();
+        let s = quantise(&h.prob, &mut out);
+        let sum: u64 = out.iter().map(|&x| x as u64).sum();
         let total: f64 = m.iter().sum();
         if total > 0.0 {
-            prop_assert_eq!(sum, TOTAL);
+            let t = total_at(s);
+            prop_assert_eq!(sum as f64, t);
+            let moved: f64 = out.iter().zip(&h.prob).map(|(&c, &p)| (c as f64 - p * t).abs()).sum();
+            prop_assert!(moved < 2.0 * m.len() as f64, "moved {moved}");
             for (&c, &p) in out.iter().zip(&h.prob) {
-                prop_assert!((c as f64 - p * TOTAL as f64).abs() < 1.0);
+                prop_assert_eq!(c > 0, p > 0.0);
             }
+            let max_p = h.prob.iter().cloned().fold(0.0, f64::max);
+            prop_assert!(s == super::corpus::MAX_SHIFT || max_p * total_at(s + 1) + 2.0 > u16::MAX as f64);
         } else {
             prop_assert_eq!(sum, 0);
+            prop_assert_eq!(s, 0);
         }
     }
 
@@ -98,7 +115,7 @@ proptest! {
     ) {
         let (ea, eb) = (encode(&a, width), encode(&b, width));
         for d in Dissimilarity::all() {
-            let exact = histogram(d, &ea.hist, ea.mass[0], &eb.hist, eb.mass[0], width);
+            let exact = histogram(d, counts(&ea), counts(&eb), width);
             let bound = with_margin(channel_bound(
                 d, &ea.groups, ea.mass[0], &eb.groups, eb.mass[0], width, a.len(),
             ));
@@ -117,14 +134,14 @@ proptest! {
         let t = TOTAL as f64;
         let (ha, hb) = (hist(&a, width), hist(&b, width));
         let (ea, eb) = (encode(&a, width), encode(&b, width));
-        let q = |d| histogram(d, &ea.hist, ea.mass[0], &eb.hist, eb.mass[0], width);
+        let q = |d| histogram(d, counts(&ea), counts(&eb), width);
         let f = |d| histogram_dissimilarity(d, &ha, &hb);
         let tol = 1e-9 * (1.0 + f(Dissimilarity::L1));
-        prop_assert!((q(Dissimilarity::NL1) - f(Dissimilarity::NL1)).abs() <= 2.0 * n / t + 1e-12);
-        prop_assert!((q(Dissimilarity::Emd) - f(Dissimilarity::Emd)).abs() <= n * n * width / t + 1e-12);
+        prop_assert!((q(Dissimilarity::NL1) - f(Dissimilarity::NL1)).abs() <= 4.0 * n / t + 1e-12);
+        prop_assert!((q(Dissimilarity::Emd) - f(Dissimilarity::Emd)).abs() <= 4.0 * n * n * width / t + 1e-12);
         prop_assert!(
             (q(Dissimilarity::L1) - f(Dissimilarity::L1)).abs()
-                <= (ea.mass[0] + eb.mass[0]) * n / t + tol
+                <= 2.0 * (ea.mass[0] + eb.mass[0]) * n / t + tol
         );
     }
 
@@ -192,7 +209,7 @@ fn a_raised_bound_fails() {
         Dissimilarity::Chi2,
         Dissimilarity::Bhattacharyya,
     ] {
-        let exact = histogram(d, &ea.hist, ea.mass[0], &eb.hist, eb.mass[0], 0.1);
+        let exact = histogram(d, counts(&ea), counts(&eb), 0.1);
         let bound = channel_bound(d, &ea.groups, ea.mass[0], &eb.groups, eb.mass[0], 0.1, 64);
         assert_eq!(bound, exact, "{d:?}");
         assert!(with_margin(bound) <= exact);

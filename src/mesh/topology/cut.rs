@@ -280,4 +280,3 @@ pub fn cut_handles(
         },
     ))
 }
-

@@ -302,4 +302,3 @@ pub fn short_homology_basis(
     let t = Topo::build(mesh)?;
     basis_of(mesh, &t, roots, refine_roots)
 }
-

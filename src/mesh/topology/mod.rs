@@ -471,8 +471,8 @@ pub use homology::short_homology_basis;
 
 #[cfg(test)]
 mod tests {
-    use super::*;
     use super::homology::annotations;
+    use super::*;
     use crate::mesh::generate;
 
     #[test]
