@@ -5,6 +5,8 @@
 //! lumped mass) → [`eigen`] (k smallest generalized eigenpairs) → [`spectrum::Spectrum`]. The core
 //! is pure synchronous Rust: no HTTP, no storage.
 
+#![warn(missing_docs)]
+
 mod bytes;
 pub mod eigen;
 pub mod error;
