@@ -14,8 +14,9 @@
 //!
 //! # The bounds
 //!
-//! For a group `g` of `w` bins write `X_g = Σ_{b∈g} x_b` (the counts `a`, `b`; `T` their total,
-//! `M` the masses, `h` the bin width):
+//! For a group `g` of `w` bins write `X_g = Σ_{b∈g} x_b` (the counts `a`, `b` brought to the
+//! corpus's common scale, exact integers: see [`super::corpus`]; `T` their total, `M` the masses,
+//! `h` the bin width):
 //!
 //! | dissimilarity | lower bound | why |
 //! |---|---|---|
