@@ -61,11 +61,11 @@ fn add_payloads(db: &sled::Db) -> Result<()> {
         let id = String::from_utf8_lossy(&key).into_owned();
         let payload = (|| -> Result<Vec<u8>> {
             let rec: super::ShapeRecord = serde_json::from_slice(&rec)
-                .map_err(|e| Error::InvalidArgument(format!("record: {e}")))?;
+                .map_err(|e| Error::corrupt("shape record", Some(&id), e.to_string()))?;
             let orig = meshes
                 .get(&key)
                 .map_err(storage_err)?
-                .ok_or_else(|| Error::InvalidArgument("no stored original".into()))?;
+                .ok_or_else(|| Error::corrupt("shape record", Some(&id), "no stored original"))?;
             let mesh = read_mesh(
                 &orig,
                 Format::from_extension(&rec.format),

@@ -144,11 +144,12 @@ impl GwPayload {
         w
     }
 
-    /// Decodes [`GwPayload::to_bytes`]; malformed input is an [`Error::InvalidArgument`].
+    /// Decodes [`GwPayload::to_bytes`]; malformed input (a stored payload damaged or of another
+    /// format) is an [`Error::Corrupt`] of `what = "gw payload"`.
     pub fn from_bytes(b: &[u8]) -> Result<Self> {
         let mut r = ByteReader::new(b);
         if r.take(4).ok_or_else(bad)? != MAGIC {
-            return Err(Error::InvalidArgument("gw payload: bad magic".into()));
+            return Err(Error::corrupt("gw payload", None, "bad magic"));
         }
         let len = r.u64().ok_or_else(bad)? as usize;
         if len > 1 << 10 {
@@ -196,7 +197,7 @@ impl GwPayload {
 }
 
 fn bad() -> Error {
-    Error::InvalidArgument("gw payload: truncated or malformed".into())
+    Error::corrupt("gw payload", None, "truncated or malformed")
 }
 
 /// Computes the payload of an analysed (unit-area) shape.
