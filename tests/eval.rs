@@ -870,6 +870,16 @@ fn loco_on_mini_bench() {
     let r = out.loco.as_ref().expect("loco report");
     assert_eq!(r.folds.len(), 3);
     assert_eq!(r.candidates.len(), 3, "default is fixed, not a candidate");
+    assert!(LocoOptions::default().is_candidate("default", 0, 1));
+    let excl = LocoOptions {
+        exclude_fixed: true,
+        ..LocoOptions::default()
+    };
+    assert!(!excl.is_candidate("default", 0, 1) && excl.is_candidate("GPS", 0, 1));
+    assert!(
+        !excl.is_candidate("GPS", 1, 1),
+        "added after the listed ones"
+    );
     let d = r.fixed("default").expect("default reported");
     assert_eq!(d.folds.len(), 3);
     let ev = out.result("default").unwrap();

@@ -102,6 +102,10 @@ pub struct EvalArgs {
     /// (comma-separated names; added to the run when `--config` lacks them).
     #[arg(long, value_delimiter = ',', default_value = "default")]
     pub loco_fixed: Vec<String>,
+    /// With `--protocol loco`: the fixed configurations are never candidates (e.g. `--config
+    /// paper --loco-exclude-fixed`: what the protocol picks among the paper's methods alone).
+    #[arg(long)]
+    pub loco_exclude_fixed: bool,
 }
 
 impl EvalArgs {
@@ -120,6 +124,7 @@ impl EvalArgs {
             "standard" => None,
             "loco" | "leave-one-class-out" => Some(LocoOptions {
                 fixed: self.loco_fixed.clone(),
+                exclude_fixed: self.loco_exclude_fixed,
             }),
             o => {
                 return Err(Error::InvalidArgument(format!(

@@ -44,13 +44,25 @@ pub struct LocoOptions {
     /// Configurations reported per fold without selection (added to the run when missing, and
     /// then not candidates). Default: `["default"]`.
     pub fixed: Vec<String>,
+    /// Leave the fixed configurations out of the candidates even when the run's configuration
+    /// list holds them (e.g. to see what the protocol picks among the paper's methods alone).
+    pub exclude_fixed: bool,
 }
 
 impl Default for LocoOptions {
     fn default() -> Self {
         LocoOptions {
             fixed: vec!["default".into()],
+            exclude_fixed: false,
         }
+    }
+}
+
+impl LocoOptions {
+    /// Is the configuration `name`, `index`-th of the run (the first `n_listed` were asked
+    /// for), a candidate?
+    pub fn is_candidate(&self, name: &str, index: usize, n_listed: usize) -> bool {
+        index < n_listed && !(self.exclude_fixed && self.fixed.iter().any(|f| f == name))
     }
 }
 

@@ -502,7 +502,11 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
             eval,
             alias: alias_of(cfg),
         });
-        candidate.push(c < n_candidates);
+        candidate.push(
+            args.loco
+                .as_ref()
+                .is_some_and(|l| l.is_candidate(&cfg.name, c, n_candidates)),
+        );
         for (label, list) in rerank_stages {
             let name = format!("{}+{}", cfg.name, label);
             let mut d2 = cur.clone();
@@ -542,7 +546,11 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
                 eval,
                 alias: None,
             });
-            candidate.push(c < n_candidates);
+            candidate.push(
+                args.loco
+                    .as_ref()
+                    .is_some_and(|l| l.is_candidate(&cfg.name, c, n_candidates)),
+            );
         }
     }
     drop(channel_cache);
