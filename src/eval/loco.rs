@@ -66,6 +66,9 @@ impl LocoOptions {
     }
 }
 
+/// Recomputes a result's matrix with only the rows of a mask ([`HeldIn::record`]).
+pub type Rerun<'a> = &'a mut dyn FnMut(&[bool]) -> Vec<f64>;
+
 /// Held-in selection scores, filled while a run evaluates its configurations.
 #[derive(Debug, Clone)]
 pub struct HeldIn {
@@ -106,7 +109,7 @@ impl HeldIn {
     /// (row = query); `rerun(mask)` recomputes its matrix with only the rows of `mask` (the
     /// result's stages re-run on them), or `None` when the result has no stage, in which case
     /// restricting `full`'s rankings is exact.
-    pub fn record(&mut self, full: &[f64], rerun: Option<&mut dyn FnMut(&[bool]) -> Vec<f64>>) {
+    pub fn record(&mut self, full: &[f64], rerun: Option<Rerun<'_>>) {
         let n = self.classes.len();
         let scores = match rerun {
             None => {
