@@ -64,11 +64,6 @@ use rayon::prelude::*;
 /// towards `t ∂_t k · area`; ε = 10 would damp everything into the second regime.
 pub const SI_EPSILON: f64 = 1.0;
 
-/// [`SI_EPSILON`] (serde default of the spec field).
-pub fn default_epsilon() -> f64 {
-    SI_EPSILON
-}
-
 /// Default log-time window and grid of [`super::ChannelSpec::scale_invariant`]: `τ ∈ [−14, 5]`,
 /// 128 samples (Δ ≈ 0.15; 64 samples measured 5–8× less invariant for factors 2 and 1/2). For unit-area shapes `tλ_1` reaches ≈ 10³ at `τ = 5` and
 /// `tλ_100` ≈ 10⁻³ at `τ = −14`, so the window holds the whole transition of `s` with room for

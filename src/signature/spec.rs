@@ -156,8 +156,9 @@ pub enum ChannelKind {
         /// Grid lag at which the inverse transform is read (0 … T−1; 0 = the mean modulus).
         lag: usize,
         /// Regularisation of `1/k` in the log-derivative, relative to `1/area`
-        /// ([`crate::signature::scale_invariant::SI_EPSILON`] by default).
-        #[serde(default = "super::scale_invariant::default_epsilon")]
+        /// ([`crate::signature::scale_invariant::SI_EPSILON`] in
+        /// [`ChannelSpec::scale_invariant`]). Required in JSON: a default would let a stored
+        /// spec written with another value be read as this one (and its cached signature reused).
         epsilon: f64,
         /// Norm of `k̂(x,·) − k̂(y,·)` (L1 / L2 / L∞ over the `lp_samples` nodes).
         norm: Norm,
