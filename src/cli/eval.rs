@@ -12,6 +12,7 @@
 //! (default 0.1).
 
 use clap::Args;
+use shapeseek::eval::loco::LocoOptions;
 use shapeseek::eval::{evaluate, report, EvalOptions};
 use shapeseek::laplace::LaplacianKind;
 use shapeseek::rerank::{Fusion, GwMetric, ReciprocalStage, SgwStage, TimeRule};
@@ -91,6 +92,20 @@ pub struct EvalArgs {
     /// here, with the manifest's ids, classes and transforms, for analysis outside shapeseek.
     #[arg(long)]
     pub matrices: Option<PathBuf>,
+    /// Evaluation protocol: `standard` (every shape queries all others) or `loco`
+    /// (leave-one-class-out: per class, the configuration with the best All mAP on the other
+    /// classes is chosen among `--config`'s configurations and scored on the held-out class;
+    /// the section comes first in the report, `loco.md` in `--out`, `loco` in `--json`).
+    #[arg(long, default_value = "standard")]
+    pub protocol: String,
+    /// With `--protocol loco`: configurations reported per fold without selection
+    /// (comma-separated names; added to the run when `--config` lacks them).
+    #[arg(long, value_delimiter = ',', default_value = "default")]
+    pub loco_fixed: Vec<String>,
+    /// With `--protocol loco`: the fixed configurations are never candidates (e.g. `--config
+    /// paper --loco-exclude-fixed`: what the protocol picks among the paper's methods alone).
+    #[arg(long)]
+    pub loco_exclude_fixed: bool,
 }
 
 impl EvalArgs {
@@ -102,6 +117,18 @@ impl EvalArgs {
             o => {
                 return Err(Error::InvalidArgument(format!(
                     "--laplacian {o}: cotangent or intrinsic-delaunay"
+                )))
+            }
+        };
+        let loco = match self.protocol.as_str() {
+            "standard" => None,
+            "loco" | "leave-one-class-out" => Some(LocoOptions {
+                fixed: self.loco_fixed.clone(),
+                exclude_fixed: self.loco_exclude_fixed,
+            }),
+            o => {
+                return Err(Error::InvalidArgument(format!(
+                    "--protocol {o}: standard or loco"
                 )))
             }
         };
@@ -128,6 +155,7 @@ impl EvalArgs {
             window_percentile: self.window_percentile,
             no_normalize: self.no_normalize,
             matrices: self.matrices.clone(),
+            loco,
         })
     }
 }

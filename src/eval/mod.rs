@@ -2,6 +2,7 @@
 //!
 //! ```text
 //! shapeseek eval --manifest M [--config C] [--json OUT] [--out DIR] [--cache DIR] [--jobs N] [--k K]
+//!                [--protocol standard|loco [--loco-fixed NAMES]]
 //! ```
 //!
 //! 1. Reads the manifest ([`manifest`]); a mesh that cannot be read or analysed is reported (id,
@@ -18,6 +19,11 @@
 //! 4. Writes a Markdown summary to stdout, and optionally `--json OUT` and `--out DIR`
 //!    (`results.md` with tables shaped like the bench REFERENCE.md, ROC / PR curves as SVG).
 //!
+//! With `--protocol loco` ([`EvalOptions::loco`]) the same run also performs the
+//! leave-one-class-out protocol of [`loco`]: per class, the configuration with the best All mAP on
+//! the other classes is chosen among the run's configurations and scored on the held-out class;
+//! its report comes first.
+//!
 //! Configurations: without `--config`, `presets::paper_configs()` plus `presets::default_config()`.
 //! `--config` takes a JSON or TOML file holding one configuration (`{name, signature, query}`), a
 //! list of them, or `{configs = [...]}`; or a preset: `paper`, `default`, `all`, or a comma-separated
@@ -26,6 +32,7 @@
 //! once per shape.
 
 pub mod cache;
+pub mod loco;
 pub mod manifest;
 pub mod metrics;
 pub mod plot;
@@ -106,6 +113,9 @@ pub struct EvalOptions {
     /// Write every configuration's all-pairs dissimilarity matrix (re-ranked rows: ranks) as
     /// JSON here.
     pub matrices: Option<PathBuf>,
+    /// Also run the leave-one-class-out protocol ([`loco`]) over the configurations (the
+    /// candidates) and report it ([`EvalOutcome::loco`], the JSON's `loco`, `loco.md` in `out`).
+    pub loco: Option<loco::LocoOptions>,
 }
 
 impl EvalOptions {
@@ -130,6 +140,7 @@ impl EvalOptions {
             no_normalize: false,
             window_percentile: 0.95,
             matrices: None,
+            loco: None,
         }
     }
 }
@@ -180,8 +191,11 @@ pub struct EvalOutcome {
     pub cache: (u64, u64, u64, u64),
     /// The JSON document (as written by `--json`).
     pub json: Value,
-    /// The Markdown report (as written to `results.md`).
+    /// The Markdown report (as written to `results.md`; with the leave-one-class-out protocol,
+    /// its section first).
     pub markdown: String,
+    /// The leave-one-class-out report, when [`EvalOptions::loco`] asked for it.
+    pub loco: Option<loco::LocoReport>,
 }
 
 impl EvalOutcome {
@@ -249,7 +263,16 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         }
     }
     let rerank_stages = &args.rerank;
-    let configs = load_configs(args.config.as_deref())?;
+    let mut configs = load_configs(args.config.as_deref())?;
+    // LOCO: the configurations asked for are the candidates; fixed ones are added if missing.
+    let n_candidates = configs.len();
+    if let Some(lo) = &args.loco {
+        for name in &lo.fixed {
+            if !configs.iter().any(|c| &c.name == name) {
+                configs.extend(load_configs(Some(name))?);
+            }
+        }
+    }
     let (specs, group_of) = union_specs(&configs);
     let spec_keys: Vec<String> = specs.iter().map(|s| s.key()).collect();
     let cache_dir = if args.no_cache {
@@ -422,6 +445,11 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
     let (mut scoring_s, mut metrics_s) = (0.0, 0.0);
     let mut solved_pairs = rerank::PairCache::new();
     let mut dumped: Vec<(String, Vec<f64>)> = Vec::new();
+    let mut held_in = args
+        .loco
+        .as_ref()
+        .map(|_| loco::HeldIn::new(&classes, class_ids.len(), &included));
+    let mut candidate: Vec<bool> = Vec::new();
     for (c, cfg) in configs.iter().enumerate() {
         let g = group_of[c];
         let corpus = &corpora[g];
@@ -455,12 +483,30 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         }
         let t = Instant::now();
         let eval = metrics::evaluate(&cur, n, &classes, &transforms, &strengths, &included);
+        if let Some(h) = held_in.as_mut() {
+            let stages: Vec<&Stage> = cfg.rerank.iter().collect();
+            loco::record_held_in(
+                h,
+                &cur,
+                &stages,
+                &dist,
+                n,
+                &payload_sets,
+                &rescore,
+                &mut solved_pairs,
+            );
+        }
         metrics_s += t.elapsed().as_secs_f64();
         results.push(ConfigResult {
             name: cfg.name.clone(),
             eval,
             alias: alias_of(cfg),
         });
+        candidate.push(
+            args.loco
+                .as_ref()
+                .is_some_and(|l| l.is_candidate(&cfg.name, c, n_candidates)),
+        );
         for (label, list) in rerank_stages {
             let name = format!("{}+{}", cfg.name, label);
             let mut d2 = cur.clone();
@@ -479,6 +525,19 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
                 d2 = next;
             }
             let eval = metrics::evaluate(&d2, n, &classes, &transforms, &strengths, &included);
+            if let Some(h) = held_in.as_mut() {
+                let stages: Vec<&Stage> = cfg.rerank.iter().chain(list).collect();
+                loco::record_held_in(
+                    h,
+                    &d2,
+                    &stages,
+                    &dist,
+                    n,
+                    &payload_sets,
+                    &rescore,
+                    &mut solved_pairs,
+                );
+            }
             if args.matrices.is_some() {
                 dumped.push((name.clone(), d2.clone()));
             }
@@ -487,9 +546,30 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
                 eval,
                 alias: None,
             });
+            candidate.push(
+                args.loco
+                    .as_ref()
+                    .is_some_and(|l| l.is_candidate(&cfg.name, c, n_candidates)),
+            );
         }
     }
     drop(channel_cache);
+    let loco_report = held_in.map(|h| {
+        let fixed = args
+            .loco
+            .as_ref()
+            .map(|l| l.fixed.clone())
+            .unwrap_or_default();
+        h.report(&loco::RunView {
+            results: &results,
+            candidate: &candidate,
+            fixed: &fixed,
+            class_ids: &class_ids,
+            classes: &classes,
+            transforms: &transforms,
+            strengths: &strengths,
+        })
+    });
     let ranking_s = t_rank.elapsed().as_secs_f64();
     if let Some(p) = &args.matrices {
         write_matrices(p, &manifest, &included, n, &dumped)?;
@@ -554,6 +634,13 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
     if !rerank_notes.is_empty() {
         markdown.push_str(&format!("\n## Re-ranking\n\n{rerank_notes}"));
     }
+    if let Some(r) = &loco_report {
+        let section = r.markdown();
+        if let Some(dir) = &args.out {
+            std::fs::write(dir.join("loco.md"), &section)?;
+        }
+        markdown = format!("{section}\n{markdown}");
+    }
     if let Some(dir) = &args.out {
         std::fs::write(dir.join("results.md"), &markdown)?;
     }
@@ -565,12 +652,18 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         "cache": {"dir": cache.dir().map(|d| d.display().to_string()), "hits": cache_counts.0, "misses": cache_counts.1, "corrupt": cache_counts.2, "write_errors": cache_counts.3},
         "reference": reference.as_ref().map(|r| r.source.clone()),
     });
-    let json_doc = report::json_document(
+    let mut json_doc = report::json_document(
         &results,
         &failures,
         &serde_json::to_value(&timings).unwrap_or(Value::Null),
         extra,
     );
+    if let (Some(r), Some(o)) = (&loco_report, json_doc.as_object_mut()) {
+        o.insert(
+            "loco".into(),
+            serde_json::to_value(r).unwrap_or(Value::Null),
+        );
+    }
     if let Some(p) = &args.json {
         if let Some(parent) = p.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent)?;
@@ -586,6 +679,7 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         cache: cache_counts,
         json: json_doc,
         markdown,
+        loco: loco_report,
     })
 }
 

@@ -4,6 +4,7 @@ use super::baselines::{d2_sketch, geodesic_sketch};
 use super::distributions::{truncate_sketch, QuantileSketch};
 use super::kernels::{heat_weights, l2_pairs, lp_pairs, transfer_weights, PairMode};
 use super::sampling::{farthest_points, EdgeGraph, NearField, Quadrature};
+use super::scale_invariant::{si_kernel_rows, si_pairs, tau_grid};
 use super::spec::{validate_spec, ChannelKind, Norm, PairQuadrature, SignatureSpec};
 use crate::scale::SpectrumScaling;
 use crate::spectrum::{Analysis, ZERO_MODE_TOLERANCE};
@@ -100,6 +101,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                     need_lp = true
                 }
             }
+            ChannelKind::ScaleInvariant { .. } => need_lp = true,
             ChannelKind::Geodesic { .. } => need_geo = true,
             ChannelKind::ShapeDna { count } => {
                 if *count > nonzero.len() {
@@ -217,6 +219,21 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                 ChannelKind::DistributionSum { ts, norm } => {
                     let w = heat_weights(ts, &sp.eigenvalues, zero_tol);
                     spectral_channel(&w, *norm, PairMode::Mixture, &ctx)
+                }
+                ChannelKind::ScaleInvariant {
+                    tau_min,
+                    tau_max,
+                    steps,
+                    lag,
+                    epsilon,
+                    norm,
+                } => {
+                    let quad = ctx.lp_quad.as_ref().expect("Lp quadrature");
+                    let nodes = ctx.lp_nodes.as_ref().expect("Lp nodes").as_ref();
+                    let taus = tau_grid(*tau_min, *tau_max, *steps);
+                    let kr =
+                        si_kernel_rows(nodes, nodes, &sp.eigenvalues, area, &taus, *lag, *epsilon);
+                    ChannelValues::Distribution(si_pairs(&kr, &quad.weights, area, *norm).sketch(q))
                 }
                 ChannelKind::Geodesic { radius } => ChannelValues::Distribution(geodesic_sketch(
                     mesh,

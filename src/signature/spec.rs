@@ -142,6 +142,27 @@ pub enum ChannelKind {
         /// Number of eigenvalues.
         count: usize,
     },
+    /// Scale-invariant heat kernel of eq. 21, `k̂ = F⁻¹|F(∂_τ log k_τ)|` on a log-time grid
+    /// read at one lag, under `norm` over area-normalised quadrature nodes
+    /// ([`crate::signature::scale_invariant`]): the distribution is unchanged by a uniform
+    /// scaling of the shape, without unit-area normalisation.
+    ScaleInvariant {
+        /// Smallest log-time `τ = log t` of the grid.
+        tau_min: f64,
+        /// Largest log-time.
+        tau_max: f64,
+        /// Grid samples `T` (8 … 1024).
+        steps: usize,
+        /// Grid lag at which the inverse transform is read (0 … T−1; 0 = the mean modulus).
+        lag: usize,
+        /// Regularisation of `1/k` in the log-derivative, relative to `1/area`
+        /// ([`crate::signature::scale_invariant::SI_EPSILON`] in
+        /// [`ChannelSpec::scale_invariant`]). Required in JSON: a default would let a stored
+        /// spec written with another value be read as this one (and its cached signature reused).
+        epsilon: f64,
+        /// Norm of `k̂(x,·) − k̂(y,·)` (L1 / L2 / L∞ over the `lp_samples` nodes).
+        norm: Norm,
+    },
     /// Truncated distance range of another distribution channel: only its pairs closer than
     /// `radius` (unit-area units; mass beyond is left out). Calibrated and histogrammed as a
     /// channel of its own, so it gets its own window on the short range.
@@ -217,6 +238,22 @@ impl ChannelSpec {
         }
     }
 
+    /// The scale-invariant kernel of eq. 21 under `norm`, on the default window
+    /// [`crate::signature::scale_invariant::SI_DEFAULT_WINDOW`], lag 0.
+    pub fn scale_invariant(norm: Norm) -> Self {
+        let (tau_min, tau_max, steps) = super::scale_invariant::SI_DEFAULT_WINDOW;
+        Self {
+            kind: ChannelKind::ScaleInvariant {
+                tau_min,
+                tau_max,
+                steps,
+                lag: 0,
+                epsilon: super::scale_invariant::SI_EPSILON,
+                norm,
+            },
+        }
+    }
+
     /// Geodesic distance distribution.
     pub fn geodesic(radius: Option<f64>) -> Self {
         Self {
@@ -240,7 +277,8 @@ impl ChannelSpec {
 
     /// Stable, human-readable name, e.g. `heat-l2[t=0.016]`, `ct-l2`, `step-l2[lc=4pi*10]`,
     /// `heat-l2-ksum[t=0.016,0.04]`, `heat-l2-dmax[...]`, `heat-l2-fsum[...]`, `geo`,
-    /// `geo[r=0.5]`, `d2[n=2000]`, `shapedna[50]`, `heat-l2[t=0.016][r=2.44]` (truncated).
+    /// `geo[r=0.5]`, `d2[n=2000]`, `shapedna[50]`, `heat-l2[t=0.016][r=2.44]` (truncated),
+    /// `si-heat-l2[tau=-14..5,n=128,lag=0,eps=1]` (eq. 21).
     pub fn name(&self) -> String {
         match &self.kind {
             ChannelKind::Spectral { kernel, norm } => {
@@ -275,6 +313,17 @@ impl ChannelSpec {
                 Some(r) => format!("geo[r={r}]"),
                 None => "geo".to_string(),
             },
+            ChannelKind::ScaleInvariant {
+                tau_min,
+                tau_max,
+                steps,
+                lag,
+                epsilon,
+                norm,
+            } => format!(
+                "si-heat-{}[tau={tau_min}..{tau_max},n={steps},lag={lag},eps={epsilon}]",
+                norm.label()
+            ),
             ChannelKind::EuclideanD2 { samples } => format!("d2[n={samples}]"),
             ChannelKind::ShapeDna { count } => format!("shapedna[{count}]"),
             ChannelKind::Truncated { channel, radius } => {
@@ -448,6 +497,23 @@ pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
                 !ts.is_empty() && ts.iter().all(|&t| check_t(t))
             }
             ChannelKind::Geodesic { radius } => radius.is_none_or(|r| r.is_finite() && r > 0.0),
+            ChannelKind::ScaleInvariant {
+                tau_min,
+                tau_max,
+                steps,
+                lag,
+                epsilon,
+                ..
+            } => {
+                epsilon.is_finite()
+                    && *epsilon > 0.0
+                    && tau_min.is_finite()
+                    && tau_max.is_finite()
+                    && tau_min < tau_max
+                    && *tau_max <= 50.0
+                    && (8..=1024).contains(steps)
+                    && lag < steps
+            }
             ChannelKind::EuclideanD2 { samples } => *samples >= 2 && *samples <= 100_000,
             ChannelKind::ShapeDna { count } => *count >= 1,
             ChannelKind::Truncated { .. } => false,
