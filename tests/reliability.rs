@@ -843,3 +843,51 @@ fn padding_is_not_stored() {
     assert_problem(&r, 413, "limit.stored_bytes");
     s.stop();
 }
+
+/// Finding 6: a search by upload ran the whole mesh analysis before rejecting its options.
+/// Now the options are checked first: an upload that is not even a mesh, with an impossible
+/// rerank stage, is refused for its options (400), not for its bytes.
+#[test]
+fn upload_search_options_are_checked_before_the_analysis() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |_| {});
+    let query = br#"{"rerank": [{"stage": "spectral_gw", "shortlist": 100000}]}"#;
+    let boundary = "b0undary";
+    let mut body = Vec::new();
+    for (name, ctype, data) in [
+        (
+            "file",
+            "application/octet-stream",
+            &b"not a mesh at all"[..],
+        ),
+        ("query", "application/json", &query[..]),
+    ] {
+        body.extend_from_slice(
+            format!(
+                "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"; filename=\"{name}\"\r\nContent-Type: {ctype}\r\n\r\n"
+            )
+            .as_bytes(),
+        );
+        body.extend_from_slice(data);
+        body.extend_from_slice(b"\r\n");
+    }
+    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
+    let r = request(
+        s.addr,
+        "POST",
+        "/v1/search",
+        &format!("multipart/form-data; boundary={boundary}"),
+        &body,
+    );
+    assert_problem(&r, 400, "request.invalid");
+    assert!(
+        json_of(&r)["detail"]
+            .as_str()
+            .unwrap()
+            .contains("shortlist"),
+        "{}",
+        json_of(&r)
+    );
+    s.stop();
+}

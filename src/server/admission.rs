@@ -77,6 +77,23 @@ impl Cost {
         Cost(10 + (bytes / (32 << 10)).min(u32::MAX as usize / 2) as u32)
     }
 
+    /// The estimated cost of a search over `n` shapes: the scan, then each stage over the
+    /// shortlist it actually receives (never more than the index holds).
+    pub fn search(n: usize, stages: &[crate::search::Stage]) -> Cost {
+        let mut cost = Cost::scan(n);
+        let mut avail = n;
+        for st in stages {
+            let s = st.shortlist().min(avail);
+            avail = s;
+            cost = cost.plus(match st {
+                crate::search::Stage::Exact { .. } => Cost::exact(s),
+                crate::search::Stage::Reciprocal(_) => Cost::reciprocal(s),
+                crate::search::Stage::SpectralGw(g) => Cost::gw(s, g.gw.outer_iterations),
+            });
+        }
+        cost
+    }
+
     /// The sum of two costs.
     pub fn plus(self, other: Cost) -> Cost {
         Cost(self.0.saturating_add(other.0))
@@ -235,7 +252,14 @@ impl Lane {
         }
         // The sender is only dropped after a hand-over (then the slot is ours) or with the
         // lane itself, which outlives its requests.
-        let _ = rx.await;
+        let mut waiting = Waiting {
+            rx: Some(rx),
+            lane: self.clone(),
+        };
+        if let Some(rx) = waiting.rx.as_mut() {
+            let _ = rx.await;
+        }
+        waiting.rx = None;
         RunSlot(self.clone())
     }
 
@@ -256,6 +280,24 @@ impl Lane {
             if w.send(()).is_ok() {
                 st.next = 1 - class;
                 return;
+            }
+        }
+    }
+}
+
+/// A waiter of a lane; dropped while waiting (its request was abandoned) it gives back a slot
+/// that was handed to it in the meantime.
+struct Waiting {
+    rx: Option<tokio::sync::oneshot::Receiver<()>>,
+    lane: Arc<Lane>,
+}
+
+impl Drop for Waiting {
+    fn drop(&mut self) {
+        if let Some(mut rx) = self.rx.take() {
+            rx.close();
+            if rx.try_recv().is_ok() {
+                self.lane.release();
             }
         }
     }
@@ -352,11 +394,9 @@ impl Admission {
         let mine = lane.class_queued[class].load(Ordering::Relaxed) as u64;
         let other_n = lane.class_queued[1 - class].load(Ordering::Relaxed) as u64;
         let other_u = lane.class_units[1 - class].load(Ordering::Relaxed);
-        let interleaved = if other_n == 0 {
-            0
-        } else {
-            other_u / other_n * other_n.min(mine + 1)
-        };
+        let interleaved = other_u
+            .checked_div(other_n)
+            .map_or(0, |mean| mean * other_n.min(mine + 1));
         let ahead = st.running_units.load(Ordering::Relaxed)
             + lane.class_units[class].load(Ordering::Relaxed)
             + interleaved;

@@ -387,16 +387,8 @@ pub async fn search(
             };
             (bytes, hint, opts)
         };
-        // Validate cheap options before the expensive analysis.
-        validate_tags(&opts.tags)?;
-        if let Some(k) = opts.top_k {
-            if k == 0 || k > app.cfg.max_top_k {
-                return Err(ApiError::invalid(format!(
-                    "top_k must be in 1..={}",
-                    app.cfg.max_top_k
-                )));
-            }
-        }
+        // Every option is validated before the expensive analysis of the upload.
+        app.resolve_options(&opts)?;
         let q = app
             .analyze_query(
                 Upload {

@@ -1,9 +1,50 @@
-//! Admission of request bodies (the CPU work of a request is admitted by
-//! [`super::admission`]).
+//! Admission of request bodies, and the bound on the bytes stored per shape (the CPU work of a
+//! request is admitted by [`super::admission`]).
 
 use super::problem::ApiError;
+use crate::mesh::read::Format;
 use std::sync::Arc;
 use tokio::sync::Semaphore;
+
+/// The bytes kept as a shape's original: the upload when its size is within
+/// `max(stored_bytes_floor, stored_bytes_per_element × (vertices + faces))`, else (policy
+/// `reencode`) the mesh as read, written again in the same format, with the upload's size
+/// returned alongside, or (policy `refuse`) 413 `limit.stored_bytes`. Padding, comments,
+/// unused buffers and textures are not kept.
+pub fn stored_original(
+    cfg: &super::config::ServerConfig,
+    upload: &axum::body::Bytes,
+    mesh: &crate::mesh::Mesh,
+    format: Format,
+) -> Result<(axum::body::Bytes, Option<u64>), ApiError> {
+    let elements = mesh.vertices.len() + mesh.faces.len();
+    let cap = cfg
+        .stored_bytes_floor
+        .max(cfg.stored_bytes_per_element.saturating_mul(elements));
+    if upload.len() <= cap {
+        return Ok((upload.clone(), None));
+    }
+    metrics::counter!("shapeseek_originals_over_cap_total").increment(1);
+    if cfg.oversized_original == "refuse" {
+        return Err(ApiError::new(
+            axum::http::StatusCode::PAYLOAD_TOO_LARGE,
+            "limit.stored_bytes",
+            format!(
+                "the upload has {} bytes for {} vertices and {} faces; at most {cap} bytes \
+                 are stored for this geometry (stored_bytes_per_element = {}, \
+                 stored_bytes_floor = {})",
+                upload.len(),
+                mesh.vertices.len(),
+                mesh.faces.len(),
+                cfg.stored_bytes_per_element,
+                cfg.stored_bytes_floor
+            ),
+        ));
+    }
+    let mut out = Vec::new();
+    crate::mesh::write::write_mesh(mesh, format, &mut out)?;
+    Ok((out.into(), Some(upload.len() as u64)))
+}
 
 /// Admission of request bodies: a size check on the announced `Content-Length` before any
 /// byte is read, a budget of body bytes held in memory over all requests, and a deadline for

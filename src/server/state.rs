@@ -4,6 +4,7 @@
 use super::admission::{Admission, AdmissionConfig, Cancel, Cost};
 use super::config::ServerConfig;
 use super::env::ServerEnv;
+use super::limits::stored_original;
 use super::metrics as m;
 use super::problem::ApiError;
 use crate::index::{Engine, Inserted, ScanIndex, ShapeRecord, Store};
@@ -446,7 +447,7 @@ impl App {
         let format = detect_format(&up.bytes, up.hint)?;
         let mesh = read_mesh(&up.bytes, Some(format), &self.limits)?;
         t.read_ms = ms(t1);
-        let (stored, reencoded_from) = self.stored_original(&up.bytes, &mesh, format)?;
+        let (stored, reencoded_from) = stored_original(&self.cfg, &up.bytes, &mesh, format)?;
         let area = mesh.area();
         let (analysis, sig, payload) = self.analyze_and_sign(&mesh, &mut t, true, cancel)?;
         let payload = payload.map(|p| p.to_bytes());
@@ -507,47 +508,6 @@ impl App {
             timings: Some(t),
             reencoded_from_bytes: reencoded_from,
         })
-    }
-
-    /// The bytes kept as a shape's original: the upload when its size is within
-    /// `max(stored_bytes_floor, stored_bytes_per_element × (vertices + faces))`, else (policy
-    /// `reencode`) the mesh as read, written again in the same format, with the upload's size
-    /// returned alongside, or (policy `refuse`) 413 `limit.stored_bytes`. Padding, comments,
-    /// unused buffers and textures are not kept.
-    fn stored_original(
-        &self,
-        upload: &axum::body::Bytes,
-        mesh: &crate::mesh::Mesh,
-        format: Format,
-    ) -> Result<(axum::body::Bytes, Option<u64>), ApiError> {
-        let elements = mesh.vertices.len() + mesh.faces.len();
-        let cap = self
-            .cfg
-            .stored_bytes_floor
-            .max(self.cfg.stored_bytes_per_element.saturating_mul(elements));
-        if upload.len() <= cap {
-            return Ok((upload.clone(), None));
-        }
-        metrics::counter!("shapeseek_originals_over_cap_total").increment(1);
-        if self.cfg.oversized_original == "refuse" {
-            return Err(ApiError::new(
-                axum::http::StatusCode::PAYLOAD_TOO_LARGE,
-                "limit.stored_bytes",
-                format!(
-                    "the upload has {} bytes for {} vertices and {} faces; at most {cap} bytes \
-                     are stored for this geometry (stored_bytes_per_element = {}, \
-                     stored_bytes_floor = {})",
-                    upload.len(),
-                    mesh.vertices.len(),
-                    mesh.faces.len(),
-                    self.cfg.stored_bytes_per_element,
-                    self.cfg.stored_bytes_floor
-                ),
-            ));
-        }
-        let mut out = Vec::new();
-        crate::mesh::write::write_mesh(mesh, format, &mut out)?;
-        Ok((out.into(), Some(upload.len() as u64)))
     }
 
     /// Deletes a shape. False when absent.
@@ -790,14 +750,13 @@ impl App {
             .await
     }
 
-    /// Searches with a stored shape (`id`) or an analysed upload (`query_sig`).
-    pub async fn search(
-        self: &Arc<Self>,
-        opts: SearchOptions,
-        query_sig: Option<QueryAnalysis>,
-        deadline: Option<Instant>,
-    ) -> Result<SearchResult, ApiError> {
-        let t0 = Instant::now();
+    /// The validated options of a search: `top_k`, the query spec (and its JSON form) and the
+    /// stages. Cheap: a search by upload calls it before analysing the upload, so options that
+    /// cannot be served cost no analysis.
+    pub fn resolve_options(
+        &self,
+        opts: &SearchOptions,
+    ) -> Result<(usize, QuerySpec, serde_json::Value, Vec<Stage>), ApiError> {
         // The default never exceeds the configured limit (a server with `max_top_k` below 10
         // answers its first `max_top_k` hits instead of refusing every search without `top_k`).
         let top_k = opts.top_k.unwrap_or(DEFAULT_TOP_K.min(self.cfg.max_top_k));
@@ -810,7 +769,19 @@ impl App {
         validate_tags(&opts.tags)?;
         let base = serde_json::to_value(self.engine.default_query()).map_err(ApiError::internal)?;
         let (spec, spec_json) = self.query_spec(&base, opts.spec.as_ref())?;
-        let stages = self.stages(&opts, top_k, &spec_json)?;
+        let stages = self.stages(opts, top_k, &spec_json)?;
+        Ok((top_k, spec, spec_json, stages))
+    }
+
+    /// Searches with a stored shape (`id`) or an analysed upload (`query_sig`).
+    pub async fn search(
+        self: &Arc<Self>,
+        opts: SearchOptions,
+        query_sig: Option<QueryAnalysis>,
+        deadline: Option<Instant>,
+    ) -> Result<SearchResult, ApiError> {
+        let t0 = Instant::now();
+        let (top_k, spec, spec_json, stages) = self.resolve_options(&opts)?;
         let (query_sig, upload_payload, analysis_t) = match query_sig {
             Some((s, p, t)) => (Some(s), p, Some(t)),
             None => (None, None, None),
@@ -826,7 +797,7 @@ impl App {
             .collect();
         let needs_payload = stages.iter().any(|p| p.payload_spec().is_some());
         let n = self.scan.read().unwrap_or_else(|p| p.into_inner()).len();
-        let cost = search_cost(n, top_k, &stages);
+        let cost = Cost::search(n, &stages);
         let (hits, epoch, candidates, scan_ms, rerank_ms) = self
             .admission
             .run(cost, deadline, move |cancel| -> Result<_, ApiError> {
@@ -934,24 +905,6 @@ impl App {
             },
         })
     }
-}
-
-/// The estimated cost of a search over `n` shapes: the scan, then each stage over the
-/// shortlist it actually receives (never more than the index holds).
-pub fn search_cost(n: usize, top_k: usize, stages: &[Stage]) -> Cost {
-    let mut cost = Cost::scan(n);
-    let _ = top_k;
-    let mut avail = n;
-    for st in stages {
-        let s = st.shortlist().min(avail);
-        avail = s;
-        cost = cost.plus(match st {
-            Stage::Exact { .. } => Cost::exact(s),
-            Stage::Reciprocal(_) => Cost::reciprocal(s),
-            Stage::SpectralGw(g) => Cost::gw(s, g.gw.outer_iterations),
-        });
-    }
-    cost
 }
 
 /// The message of a validation error (without the error kind's prefix).
