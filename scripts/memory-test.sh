@@ -12,7 +12,7 @@
 # its resident set (VmRSS) once the uploads are answered, per kind; the server is restarted
 # between kinds so each peak is its own. Exits 1 if a peak exceeds BOUND_MIB or an answer is a
 # 5xx other than 503. BOUND_MIB defaults to the bound documented in docs/reliability.md for
-# the default limits: 32 + max_inflight_body_bytes (256) + heavy_threads × 2 × max_body_bytes
+# the default limits: 64 + max_inflight_body_bytes (256) + heavy_threads × 2 × max_body_bytes
 # (128 each) MiB, heavy_threads = max(1, min(⌊0.75 · cores⌋, cores − 1)).
 # CARGO_TARGET_DIR is honoured; the temporary directory is removed at exit.
 set -euo pipefail
@@ -21,7 +21,7 @@ C="${1:-16}"
 MIB="${2:-60}"
 CORES="$(nproc)"
 HEAVY=$((CORES * 3 / 4)); [ "$HEAVY" -gt $((CORES - 1)) ] && HEAVY=$((CORES - 1)); [ "$HEAVY" -lt 1 ] && HEAVY=1
-BOUND_MIB="${BOUND_MIB:-$((32 + 256 + HEAVY * 128))}"
+BOUND_MIB="${BOUND_MIB:-$((64 + 256 + HEAVY * 128))}"
 TARGET="${CARGO_TARGET_DIR:-$PWD/target}"
 BIN="$TARGET/release/shapeseek"
 cargo build --quiet --release --bin shapeseek
