@@ -10,6 +10,13 @@ use std::net::{SocketAddr, TcpStream};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+/// The tests of this file run one at a time: two of them measure latency and the process's CPU
+/// time, which other tests' servers in the same process would disturb.
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|p| p.into_inner())
+}
+
 struct Server {
     rt: tokio::runtime::Runtime,
     running: Option<Running>,
@@ -126,6 +133,7 @@ fn assert_problem(resp: &(u16, Vec<(String, String)>, Vec<u8>), status: u16, cod
 
 #[test]
 fn silent_unfinished_and_idle_connections_are_closed() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |c| c.header_read_timeout_secs = 1.0);
     let t0 = Instant::now();
@@ -160,6 +168,7 @@ fn silent_unfinished_and_idle_connections_are_closed() {
 
 #[test]
 fn a_trickling_body_gets_408_problem_json() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |c| c.body_read_timeout_secs = 1.0);
     let mut c = connect(s.addr);
@@ -177,6 +186,7 @@ fn a_trickling_body_gets_408_problem_json() {
 
 #[test]
 fn an_oversized_content_length_is_413_before_100_continue() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |_| {});
     let mut c = connect(s.addr);
@@ -200,6 +210,7 @@ fn an_oversized_content_length_is_413_before_100_continue() {
 
 #[test]
 fn connections_over_the_cap_get_503_with_retry_after() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |c| {
         c.max_connections = 4;
@@ -242,6 +253,7 @@ fn connections_over_the_cap_get_503_with_retry_after() {
 
 #[test]
 fn errors_of_the_http_layer_are_problem_json() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |_| {});
     // A URI hyper cannot represent (100 KB of query).
@@ -276,6 +288,7 @@ fn errors_of_the_http_layer_are_problem_json() {
 
 #[test]
 fn request_ids_are_bounded_and_sanitised() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |_| {});
     let ask = |id: &str| {
@@ -307,6 +320,7 @@ fn request_ids_are_bounded_and_sanitised() {
 
 #[test]
 fn body_bytes_in_flight_are_bounded() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |c| {
         c.max_body_bytes = 1 << 20;
@@ -355,6 +369,7 @@ fn body_bytes_in_flight_are_bounded() {
 
 #[test]
 fn limits_that_contradict_each_other_are_refused_at_start() {
+    let _serial = serial();
     let cfg = ServerConfig {
         max_body_bytes: 64 << 20,
         max_inflight_body_bytes: 1 << 20,
@@ -371,6 +386,7 @@ fn limits_that_contradict_each_other_are_refused_at_start() {
 
 #[test]
 fn the_default_top_k_respects_a_small_max_top_k() {
+    let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |c| c.max_top_k = 3);
     // An empty index still answers (no hits); before, every search without `top_k` was a 400
@@ -389,5 +405,489 @@ fn the_default_top_k_respects_a_small_max_top_k() {
     let r = read_response(&mut c);
     // The unknown id is the only complaint: 404, not a 400 about top_k.
     assert_problem(&r, 404, "shape.not_found");
+    s.stop();
+}
+
+// ------------------------------------------------------------------ CPU admission, overload
+
+use shapeseek::mesh::generate::{bumpy_sphere, icosphere, torus};
+use shapeseek::mesh::read::Format;
+use shapeseek::mesh::write::write_mesh;
+use shapeseek::mesh::Mesh;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+type Resp = (u16, Vec<(String, String)>, Vec<u8>);
+
+/// One request on its own connection (`Connection: close`).
+fn request(addr: SocketAddr, method: &str, path: &str, ctype: &str, body: &[u8]) -> Resp {
+    let mut c = TcpStream::connect(addr).expect("connect");
+    c.set_read_timeout(Some(Duration::from_secs(120))).unwrap();
+    c.write_all(
+        format!(
+            "{method} {path} HTTP/1.1\r\nHost: x\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+            body.len()
+        )
+        .as_bytes(),
+    )
+    .unwrap();
+    let _ = c.write_all(body);
+    read_response(&mut c)
+}
+
+fn json_of(r: &Resp) -> Value {
+    serde_json::from_slice(&r.2).unwrap_or_else(|e| {
+        panic!(
+            "not JSON ({e}): {} {:?}",
+            r.0,
+            String::from_utf8_lossy(&r.2)
+        )
+    })
+}
+
+fn search(addr: SocketAddr, body: &Value) -> Resp {
+    request(
+        addr,
+        "POST",
+        "/v1/search",
+        "application/json",
+        body.to_string().as_bytes(),
+    )
+}
+
+fn index_info(addr: SocketAddr) -> Value {
+    json_of(&request(addr, "GET", "/v1/index", "text/plain", b""))
+}
+
+fn obj(m: &Mesh) -> Vec<u8> {
+    let mut out = Vec::new();
+    write_mesh(m, Format::Obj, &mut out).unwrap();
+    out
+}
+
+/// A distinct small shape per `i` (162 to 200 vertices; 40 proportions, then shifted).
+fn shape(i: usize) -> Mesh {
+    let mut m = match i % 3 {
+        0 => icosphere(2),
+        1 => bumpy_sphere(2, 0.05 + 0.01 * (i % 7) as f64),
+        _ => torus(1.0, 0.3 + 0.01 * (i % 5) as f64, 20, 10),
+    };
+    let s = 1.0 + 0.013 * (i % 40) as f64;
+    for v in &mut m.vertices {
+        v[0] *= s;
+        v[1] += 1e-3 * (i / 40) as f64;
+        v[2] /= s;
+    }
+    m
+}
+
+/// Ingests `n` shapes; returns their ids once all are searchable (index calibrated).
+fn ingest_corpus(addr: SocketAddr, n: usize) -> Vec<String> {
+    let ids: Vec<String> = (0..n)
+        .map(|i| {
+            let r = request(addr, "POST", "/v1/shapes", "model/obj", &obj(&shape(i)));
+            assert_eq!(r.0, 201, "{:?}", String::from_utf8_lossy(&r.2));
+            json_of(&r)["id"].as_str().unwrap().to_string()
+        })
+        .collect();
+    let t = Instant::now();
+    loop {
+        let v = index_info(addr);
+        if v["shapes"] == n && v["calibrated_on"].as_u64().unwrap() > 0 {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "never calibrated");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    ids
+}
+
+/// Nearest-rank percentile of milliseconds.
+fn percentile(v: &mut [f64], p: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[((p * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1]
+}
+
+/// CPU time (user + system) of this process so far, seconds: the server runs in it.
+fn process_cpu_secs() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap();
+    let rest = &stat[stat.rfind(')').unwrap() + 2..];
+    let f: Vec<&str> = rest.split(' ').collect();
+    // Fields 14 and 15 of stat(5) (utime, stime), counted from the state field (3).
+    let ticks: f64 = f[11].parse::<f64>().unwrap() + f[12].parse::<f64>().unwrap();
+    ticks / 100.0
+}
+
+/// A 5xx must be a 503 with `Retry-After` (`server.busy` or `request.timeout`).
+fn assert_acceptable(r: &Resp, what: &str) {
+    if r.0 >= 500 {
+        assert_eq!(r.0, 503, "{what}: {:?}", String::from_utf8_lossy(&r.2));
+        assert!(
+            header(&r.1, "retry-after").is_some(),
+            "{what}: 503 without Retry-After: {:?}",
+            String::from_utf8_lossy(&r.2)
+        );
+        let code = json_of(r)["code"].as_str().unwrap().to_string();
+        assert!(
+            code == "server.busy" || code == "request.timeout",
+            "{what}: {code}"
+        );
+    }
+}
+
+fn gw_search(id: &str, outer: usize) -> Value {
+    serde_json::json!({
+        "id": id,
+        "rerank": [{"stage": "spectral_gw", "shortlist": 200, "outer_iterations": outer, "eps_rel": 0.001}]
+    })
+}
+
+/// Finding 1: searches bypassed the bounded pool (`workers = 1, queue_capacity = 1`: 15 491
+/// searches, 0 `server.busy`). Now an expensive search is admitted like an ingest.
+#[test]
+fn searches_are_admitted_through_the_bounded_lanes() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |c| {
+        c.workers = 1;
+        c.queue_capacity = 1;
+        c.retry_after_secs = 5;
+    });
+    let ids = ingest_corpus(s.addr, 12);
+    let addr = s.addr;
+    let threads: Vec<_> = (0..6)
+        .map(|i| {
+            let id = ids[i].clone();
+            std::thread::spawn(move || search(addr, &gw_search(&id, 20)))
+        })
+        .collect();
+    let resps: Vec<Resp> = threads.into_iter().map(|t| t.join().unwrap()).collect();
+    let busy: Vec<&Resp> = resps.iter().filter(|r| r.0 == 503).collect();
+    let ok = resps.iter().filter(|r| r.0 == 200).count();
+    assert!(
+        ok >= 1,
+        "{:?}",
+        resps.iter().map(|r| r.0).collect::<Vec<_>>()
+    );
+    assert!(
+        busy.len() >= 3,
+        "one runs, one waits, the rest are refused: {:?}",
+        resps.iter().map(|r| r.0).collect::<Vec<_>>()
+    );
+    for b in busy {
+        assert_problem(b, 503, "server.busy");
+        assert_eq!(header(&b.1, "retry-after"), Some("5"));
+    }
+    assert!(
+        index_info(addr)["queue"]["heavy"]["refused"]
+            .as_u64()
+            .unwrap()
+            >= 3
+    );
+    s.stop();
+}
+
+/// Finding 1: timed-out searches kept burning CPU for 3.7 s after the last response, and the
+/// timeout carried no `Retry-After`. Now an abandoned search (deadline passed, or the client
+/// closed its connection) stops within one GW candidate.
+#[test]
+fn abandoned_searches_stop_their_work() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |c| {
+        c.request_timeout_secs = 1.0;
+        c.retry_after_secs = 2;
+    });
+    let ids = ingest_corpus(s.addr, 24);
+    let addr = s.addr;
+    // Alone, this search takes several seconds of CPU (24 candidates, 20 outer iterations).
+    let t0 = Instant::now();
+    let r = search(addr, &gw_search(&ids[0], 20));
+    assert_problem(&r, 503, "request.timeout");
+    assert_eq!(header(&r.1, "retry-after"), Some("2"));
+    let answered = t0.elapsed();
+    // The job stops: the heavy lane is empty within a candidate's time (+ polling).
+    let t1 = Instant::now();
+    while index_info(addr)["queue"]["heavy"]["running"] != 0 {
+        assert!(
+            t1.elapsed() < Duration::from_millis(1500),
+            "still running {:?} after the timeout",
+            t1.elapsed()
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let stopped_after = t1.elapsed();
+    // And the process is idle: CPU time over the next second.
+    let cpu0 = process_cpu_secs();
+    let w0 = Instant::now();
+    std::thread::sleep(Duration::from_secs(1));
+    let idle_cpu = process_cpu_secs() - cpu0;
+    let window = w0.elapsed().as_secs_f64();
+    assert!(
+        idle_cpu < 0.2 * window,
+        "{idle_cpu:.2} s of CPU in {window:.2} s after the timeout"
+    );
+    let info = index_info(addr);
+    assert!(info["queue"]["cancelled"].as_u64().unwrap() >= 1, "{info}");
+    assert!(
+        info["queue"]["gw_candidates_skipped"].as_u64().unwrap() >= 1,
+        "{info}"
+    );
+    // A client that hangs up: its search stops too.
+    let before = info["queue"]["cancelled"].as_u64().unwrap();
+    let body = gw_search(&ids[1], 20).to_string();
+    let mut c = connect(addr);
+    c.write_all(
+        format!(
+            "POST /v1/search HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        )
+        .as_bytes(),
+    )
+    .unwrap();
+    let t2 = Instant::now();
+    while index_info(addr)["queue"]["heavy"]["running"] != 1 {
+        assert!(
+            t2.elapsed() < Duration::from_secs(5),
+            "search never started"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    drop(c);
+    let t3 = Instant::now();
+    while index_info(addr)["queue"]["cancelled"].as_u64().unwrap() == before {
+        assert!(
+            t3.elapsed() < Duration::from_millis(900),
+            "the search of a client that left was not stopped"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    eprintln!(
+        "timeout answered after {answered:?}; job stopped {stopped_after:?} later; \
+         {idle_cpu:.3} s CPU in the next {window:.2} s; hang-up stopped after {:?}",
+        t3.elapsed()
+    );
+    s.stop();
+}
+
+/// The overload mix of the review: expensive GW searches, cheap scan-only searches and
+/// ingests at once. Every answer is a success or a 503 with `Retry-After`, and the cheap
+/// searches' p99 stays within 5× their p99 measured idle on the same server just before.
+#[test]
+fn cheap_searches_keep_their_latency_under_an_overload_mix() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |c| {
+        c.request_timeout_secs = 6.0;
+        c.queue_capacity = 6;
+        c.retry_after_secs = 1;
+    });
+    let ids = ingest_corpus(s.addr, 32);
+    let addr = s.addr;
+    let cheap = |i: usize| serde_json::json!({"id": ids[i % ids.len()], "rerank": []});
+    let timed = |body: &Value| {
+        let t = Instant::now();
+        let r = search(addr, body);
+        (t.elapsed().as_secs_f64() * 1e3, r)
+    };
+    // Idle.
+    for i in 0..20 {
+        assert_eq!(timed(&cheap(i)).1 .0, 200);
+    }
+    let mut idle: Vec<f64> = (0..1000)
+        .map(|i| {
+            let (ms, r) = timed(&cheap(i));
+            assert_eq!(r.0, 200);
+            ms
+        })
+        .collect();
+    let idle_p50 = percentile(&mut idle, 0.5);
+    let idle_p99 = percentile(&mut idle, 0.99);
+    // Overload: 6 GW searchers, 2 ingesters, 1 cheap searcher, for 12 s.
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut load = Vec::new();
+    for g in 0..6 {
+        let (stop, id) = (stop.clone(), ids[g].clone());
+        load.push(std::thread::spawn(move || {
+            let mut out = Vec::new();
+            while !stop.load(Ordering::Relaxed) {
+                let r = search(addr, &gw_search(&id, 5));
+                if r.0 == 503 {
+                    // Back off as told, but no longer than the test runs.
+                    std::thread::sleep(Duration::from_millis(200));
+                }
+                out.push(("gw", r));
+            }
+            out
+        }));
+    }
+    for w in 0..2 {
+        let stop = stop.clone();
+        load.push(std::thread::spawn(move || {
+            let mut out = Vec::new();
+            let mut i = 1000 + w * 1000;
+            while !stop.load(Ordering::Relaxed) {
+                let r = request(addr, "POST", "/v1/shapes", "model/obj", &obj(&shape(i)));
+                if r.0 == 503 {
+                    std::thread::sleep(Duration::from_millis(200));
+                } else {
+                    i += 1;
+                }
+                out.push(("ingest", r));
+            }
+            out
+        }));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let t_load = Instant::now();
+    let mut loaded = Vec::new();
+    let mut cheap_resps = Vec::new();
+    let mut i = 0;
+    while t_load.elapsed() < Duration::from_secs(12) {
+        let (ms, r) = timed(&cheap(i));
+        i += 1;
+        loaded.push(ms);
+        cheap_resps.push(("cheap", r));
+    }
+    stop.store(true, Ordering::Relaxed);
+    let mut all = cheap_resps;
+    for t in load {
+        all.extend(t.join().unwrap());
+    }
+    let count = |kind: &str, st: u16| all.iter().filter(|(k, r)| *k == kind && r.0 == st).count();
+    for (what, r) in &all {
+        assert_acceptable(r, what);
+        assert!(
+            matches!(r.0, 200 | 201 | 503),
+            "{what}: {} {:?}",
+            r.0,
+            String::from_utf8_lossy(&r.2)
+        );
+    }
+    let load_p50 = percentile(&mut loaded, 0.5);
+    let load_p99 = percentile(&mut loaded, 0.99);
+    let info = index_info(addr);
+    eprintln!(
+        "idle cheap: n={} p50 {idle_p50:.2} ms p99 {idle_p99:.2} ms | loaded cheap: n={} p50 \
+         {load_p50:.2} ms p99 {load_p99:.2} ms ({:.1}×) | gw 200/503: {}/{} | ingest 201/503: \
+         {}/{} | cheap 503: {} | queue {}",
+        idle.len(),
+        loaded.len(),
+        load_p99 / idle_p99,
+        count("gw", 200),
+        count("gw", 503),
+        count("ingest", 201),
+        count("ingest", 503),
+        count("cheap", 503),
+        info["queue"]
+    );
+    assert_eq!(count("cheap", 503), 0, "a cheap search was refused");
+    assert!(count("gw", 200) >= 3, "expensive searches made no progress");
+    assert!(count("ingest", 201) >= 2, "ingests made no progress");
+    assert!(
+        load_p99 <= 5.0 * idle_p99,
+        "cheap-search p99 {load_p99:.2} ms under load vs {idle_p99:.2} ms idle"
+    );
+    s.stop();
+}
+
+/// Finding 3 (quality of what is stored): a glTF holding a small mesh and megabytes of
+/// padding was stored whole. Now the stored original is bounded by the geometry: re-encoded
+/// (default) or refused.
+#[test]
+fn padding_is_not_stored() {
+    let _serial = serial();
+    let mesh = icosphere(2);
+    let mut gltf = Vec::new();
+    write_mesh(&mesh, Format::Gltf, &mut gltf).unwrap();
+    // 4 MiB of JSON whitespace before the closing brace.
+    let end = gltf.iter().rposition(|&b| b == b'}').unwrap();
+    let mut padded = gltf[..end].to_vec();
+    padded.extend(std::iter::repeat_n(b' ', 4 << 20));
+    padded.extend_from_slice(&gltf[end..]);
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |_| {});
+    let r = request(s.addr, "POST", "/v1/shapes", "model/gltf+json", &padded);
+    assert_eq!(r.0, 201, "{:?}", String::from_utf8_lossy(&r.2));
+    let v = json_of(&r);
+    let stored = v["shape"]["bytes"].as_u64().unwrap();
+    assert_eq!(v["reencoded_from_bytes"], padded.len() as u64);
+    assert!(stored < 256 << 10, "stored {stored} bytes");
+    let id = v["id"].as_str().unwrap();
+    let m = request(
+        s.addr,
+        "GET",
+        &format!("/v1/shapes/{id}/mesh"),
+        "text/plain",
+        b"",
+    );
+    assert_eq!(m.0, 200);
+    assert_eq!(m.2.len() as u64, stored);
+    let back = shapeseek::mesh::read::read_mesh(
+        &m.2,
+        Some(Format::Gltf),
+        &shapeseek::mesh::read::ReadLimits::default(),
+    )
+    .expect("the stored re-encoding reads back");
+    assert_eq!(back.vertices.len(), mesh.vertices.len());
+    assert_eq!(back.faces.len(), mesh.faces.len());
+    // An upload within the cap is stored as sent.
+    let r = request(s.addr, "POST", "/v1/shapes", "model/obj", &obj(&shape(4)));
+    assert_eq!(r.0, 201);
+    assert!(json_of(&r).get("reencoded_from_bytes").is_none());
+    s.stop();
+    // Policy `refuse`: 413 with its own code.
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |c| c.oversized_original = "refuse".into());
+    let r = request(s.addr, "POST", "/v1/shapes", "model/gltf+json", &padded);
+    assert_problem(&r, 413, "limit.stored_bytes");
+    s.stop();
+}
+
+/// Finding 6: a search by upload ran the whole mesh analysis before rejecting its options.
+/// Now the options are checked first: an upload that is not even a mesh, with an impossible
+/// rerank stage, is refused for its options (400), not for its bytes.
+#[test]
+fn upload_search_options_are_checked_before_the_analysis() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |_| {});
+    let query = br#"{"rerank": [{"stage": "spectral_gw", "shortlist": 100000}]}"#;
+    let boundary = "b0undary";
+    let mut body = Vec::new();
+    for (name, ctype, data) in [
+        (
+            "file",
+            "application/octet-stream",
+            &b"not a mesh at all"[..],
+        ),
+        ("query", "application/json", &query[..]),
+    ] {
+        body.extend_from_slice(
+            format!(
+                "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"; filename=\"{name}\"\r\nContent-Type: {ctype}\r\n\r\n"
+            )
+            .as_bytes(),
+        );
+        body.extend_from_slice(data);
+        body.extend_from_slice(b"\r\n");
+    }
+    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
+    let r = request(
+        s.addr,
+        "POST",
+        "/v1/search",
+        &format!("multipart/form-data; boundary={boundary}"),
+        &body,
+    );
+    assert_problem(&r, 400, "request.invalid");
+    assert!(
+        json_of(&r)["detail"]
+            .as_str()
+            .unwrap()
+            .contains("shortlist"),
+        "{}",
+        json_of(&r)
+    );
     s.stop();
 }

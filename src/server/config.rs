@@ -37,8 +37,24 @@ pub struct ServerConfig {
     pub max_inflight_body_bytes: usize,
     /// CPU jobs (analysis + signature) run at once; 0 = number of cores.
     pub workers: usize,
-    /// CPU jobs allowed to wait for a worker; more get 503 `server.busy`.
+    /// CPU jobs allowed to wait, per admission lane (cheap, heavy); more get 503 `server.busy`.
     pub queue_capacity: usize,
+    /// Share of the workers that expensive work (analysis of uploads, GW stages, large
+    /// reciprocal stages) may use, in (0, 1]; below 1 at least one worker is kept for cheap
+    /// searches. See `src/server/admission.rs`.
+    pub heavy_share: f64,
+    /// Nice value (0..=19) of the threads running expensive work, so cheap searches get the CPU
+    /// first when both want it (Linux; 0 = no change).
+    pub heavy_nice: i32,
+    /// Stored original bytes allowed per shape regardless of its geometry.
+    pub stored_bytes_floor: usize,
+    /// Stored original bytes allowed per vertex + face of the mesh read; an upload over
+    /// `max(stored_bytes_floor, stored_bytes_per_element × (vertices + faces))` (padding,
+    /// comments, textures) is not kept as uploaded (see `oversized_original`).
+    pub stored_bytes_per_element: usize,
+    /// What to do with an upload over the stored-bytes cap: `reencode` (store the mesh as
+    /// read, re-encoded canonically in the same format) or `refuse` (413 `limit.stored_bytes`).
+    pub oversized_original: String,
     /// `Retry-After` seconds sent with 503 `server.busy`.
     pub retry_after_secs: u64,
     /// Recalibrate when the index grew or shrank by more than this fraction since the last
@@ -70,6 +86,11 @@ impl Default for ServerConfig {
             max_inflight_body_bytes: 256 << 20,
             workers: 0,
             queue_capacity: 16,
+            heavy_share: 0.75,
+            heavy_nice: 10,
+            stored_bytes_floor: 256 << 10,
+            stored_bytes_per_element: 256,
+            oversized_original: "reencode".into(),
             retry_after_secs: 2,
             recalibrate_fraction: 0.1,
             max_top_k: 1000,
@@ -175,6 +196,18 @@ impl ServerConfig {
         }
         if !(2..=2000).contains(&self.eigenpairs) {
             return bad("eigenpairs must be in 2..=2000");
+        }
+        if !(self.heavy_share.is_finite() && self.heavy_share > 0.0 && self.heavy_share <= 1.0) {
+            return bad("heavy_share must be in (0, 1]");
+        }
+        if !(0..=19).contains(&self.heavy_nice) {
+            return bad("heavy_nice must be in 0..=19");
+        }
+        if self.stored_bytes_per_element == 0 {
+            return bad("stored_bytes_per_element must be > 0");
+        }
+        if self.oversized_original != "reencode" && self.oversized_original != "refuse" {
+            return bad("oversized_original must be \"reencode\" or \"refuse\"");
         }
         if self.max_top_k == 0 {
             return bad("max_top_k must be > 0");

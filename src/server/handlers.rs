@@ -182,6 +182,7 @@ pub async fn ingest(
     req: Request,
 ) -> Result<Response, ApiError> {
     let format = format_param(params.format.as_deref())?;
+    let deadline = super::router::deadline_of(&req);
     let up = if is_multipart(req.headers()) {
         let (bytes, hint, meta) = read_multipart(&app, req, "metadata").await?;
         let meta: Metadata = match meta {
@@ -210,7 +211,7 @@ pub async fn ingest(
     };
     check_name(&up.name)?;
     validate_tags(&up.tags)?;
-    let res = app.ingest(up).await?;
+    let res = app.ingest_until(up, deadline).await?;
     let status = if res.created {
         StatusCode::CREATED
     } else {
@@ -335,6 +336,7 @@ pub async fn search(
     req: Request,
 ) -> Result<Response, ApiError> {
     let headers = req.headers().clone();
+    let deadline = super::router::deadline_of(&req);
     let res = if is_json(&headers) {
         let Json(opts) = Json::<SearchOptions>::from_request(req, &app)
             .await
@@ -358,7 +360,7 @@ pub async fn search(
                 "a JSON search needs \"id\"; to search by example upload the mesh (raw body or multipart)",
             ));
         }
-        app.search(opts, None).await?
+        app.search(opts, None, deadline).await?
     } else {
         // Search by example: a multipart file (+ optional `query` JSON part) or a raw body.
         let (bytes, hint, opts) = if is_multipart(&headers) {
@@ -385,16 +387,8 @@ pub async fn search(
             };
             (bytes, hint, opts)
         };
-        // Validate cheap options before the expensive analysis.
-        validate_tags(&opts.tags)?;
-        if let Some(k) = opts.top_k {
-            if k == 0 || k > app.cfg.max_top_k {
-                return Err(ApiError::invalid(format!(
-                    "top_k must be in 1..={}",
-                    app.cfg.max_top_k
-                )));
-            }
-        }
+        // Every option is validated before the expensive analysis of the upload.
+        app.resolve_options(&opts)?;
         let q = app
             .analyze_query(
                 Upload {
@@ -404,9 +398,10 @@ pub async fn search(
                     tags: Vec::new(),
                 },
                 app.search_needs_payload(&opts),
+                deadline,
             )
             .await?;
-        app.search(opts, Some(q)).await?
+        app.search(opts, Some(q), deadline).await?
     };
     Ok(Json(res).into_response())
 }
@@ -433,14 +428,34 @@ pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
         "signature_spec": app.engine.spec_json(),
         "default_query": serde_json::to_value(app.engine.default_query()).map_err(ApiError::internal)?,
         "size_on_disk": app.store.size_on_disk(),
-        "queue": {
-            "queued": app.pool.stats.queued.load(Ordering::Relaxed),
-            "running": app.pool.stats.running.load(Ordering::Relaxed),
-            "workers": app.cfg.effective_workers(),
-            "capacity": app.cfg.queue_capacity,
-        },
+        "queue": queue_stats(&app),
     }))
     .into_response())
+}
+
+/// The `queue` object of `GET /v1/index`: totals (as before the lanes existed) and per lane.
+fn queue_stats(app: &App) -> serde_json::Value {
+    let (cheap, heavy) = app.admission.stats();
+    let lane = |l: &super::admission::LaneStats| {
+        serde_json::json!({
+            "queued": l.queued.load(Ordering::Relaxed),
+            "running": l.running.load(Ordering::Relaxed),
+            "queued_units": l.queued_units.load(Ordering::Relaxed),
+            "running_units": l.running_units.load(Ordering::Relaxed),
+            "refused": l.refused.load(Ordering::Relaxed),
+        })
+    };
+    serde_json::json!({
+        "queued": cheap.queued.load(Ordering::Relaxed) + heavy.queued.load(Ordering::Relaxed),
+        "running": cheap.running.load(Ordering::Relaxed) + heavy.running.load(Ordering::Relaxed),
+        "workers": app.cfg.effective_workers(),
+        "capacity": app.cfg.queue_capacity,
+        "heavy_threads": app.admission.heavy_threads(),
+        "cancelled": app.admission.cancelled.load(Ordering::Relaxed),
+        "gw_candidates_skipped": app.admission.skipped.load(Ordering::Relaxed),
+        "cheap": lane(cheap),
+        "heavy": lane(heavy),
+    })
 }
 
 /// `GET /healthz`: the process answers.
@@ -463,8 +478,9 @@ pub async fn readyz(State(app): AppState) -> Result<Response, ApiError> {
 
 /// `GET /metrics`: Prometheus text format.
 pub async fn metrics(State(app): AppState) -> Response {
-    let q = app.pool.stats.queued.load(Ordering::Relaxed);
-    let r = app.pool.stats.running.load(Ordering::Relaxed);
+    let (cheap, heavy) = app.admission.stats();
+    let q = cheap.queued.load(Ordering::Relaxed) + heavy.queued.load(Ordering::Relaxed);
+    let r = cheap.running.load(Ordering::Relaxed) + heavy.running.load(Ordering::Relaxed);
     ::metrics::gauge!("shapeseek_queue_depth").set(q as f64);
     ::metrics::gauge!("shapeseek_jobs_running").set(r as f64);
     app.update_gauges();

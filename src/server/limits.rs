@@ -1,86 +1,49 @@
-//! The bounded CPU pool: analysis and signature jobs run on blocking threads, at most
-//! `workers` at once, with at most `queue_capacity` more waiting; past that a request gets
-//! 503 `server.busy` with `Retry-After` at once instead of piling up.
+//! Admission of request bodies, and the bound on the bytes stored per shape (the CPU work of a
+//! request is admitted by [`super::admission`]).
 
 use super::problem::ApiError;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use crate::mesh::read::Format;
 use std::sync::Arc;
 use tokio::sync::Semaphore;
 
-/// Counts of the pool, for `/metrics` and `/v1/index`.
-#[derive(Debug, Default)]
-pub struct PoolStats {
-    /// Jobs waiting for a worker.
-    pub queued: AtomicUsize,
-    /// Jobs running.
-    pub running: AtomicUsize,
-}
-
-/// A bounded pool of blocking CPU work.
-#[derive(Clone)]
-pub struct WorkPool {
-    admit: Arc<Semaphore>,
-    run: Arc<Semaphore>,
-    retry_after: u64,
-    /// Live counts.
-    pub stats: Arc<PoolStats>,
-}
-
-impl WorkPool {
-    /// `workers` jobs at once, `queue` more waiting.
-    pub fn new(workers: usize, queue: usize, retry_after: u64) -> Self {
-        let workers = workers.max(1);
-        Self {
-            admit: Arc::new(Semaphore::new(workers + queue)),
-            run: Arc::new(Semaphore::new(workers)),
-            retry_after,
-            stats: Arc::new(PoolStats::default()),
-        }
+/// The bytes kept as a shape's original: the upload when its size is within
+/// `max(stored_bytes_floor, stored_bytes_per_element × (vertices + faces))`, else (policy
+/// `reencode`) the mesh as read, written again in the same format, with the upload's size
+/// returned alongside, or (policy `refuse`) 413 `limit.stored_bytes`. Padding, comments,
+/// unused buffers and textures are not kept.
+pub fn stored_original(
+    cfg: &super::config::ServerConfig,
+    upload: &axum::body::Bytes,
+    mesh: &crate::mesh::Mesh,
+    format: Format,
+) -> Result<(axum::body::Bytes, Option<u64>), ApiError> {
+    let elements = mesh.vertices.len() + mesh.faces.len();
+    let cap = cfg
+        .stored_bytes_floor
+        .max(cfg.stored_bytes_per_element.saturating_mul(elements));
+    if upload.len() <= cap {
+        return Ok((upload.clone(), None));
     }
-
-    /// Runs `job` on a blocking thread once a worker is free; 503 at once when the queue is
-    /// full. If the request is dropped (client gone, timeout, shutdown) while queued, the job
-    /// never starts; once started it runs to completion.
-    pub async fn run<T, F>(&self, job: F) -> Result<T, ApiError>
-    where
-        T: Send + 'static,
-        F: FnOnce() -> T + Send + 'static,
-    {
-        let admit = self
-            .admit
-            .clone()
-            .try_acquire_owned()
-            .map_err(|_| ApiError::busy(self.retry_after))?;
-        self.stats.queued.fetch_add(1, Ordering::Relaxed);
-        let queued = QueuedGuard(self.stats.clone());
-        let permit = self
-            .run
-            .clone()
-            .acquire_owned()
-            .await
-            .map_err(|_| ApiError::busy(self.retry_after))?;
-        drop(queued);
-        let stats = self.stats.clone();
-        stats.running.fetch_add(1, Ordering::Relaxed);
-        let handle = tokio::task::spawn_blocking(move || {
-            let out = job();
-            stats.running.fetch_sub(1, Ordering::Relaxed);
-            drop(permit);
-            drop(admit);
-            out
-        });
-        handle
-            .await
-            .map_err(|e| ApiError::internal(format!("analysis job failed: {e}")))
+    metrics::counter!("shapeseek_originals_over_cap_total").increment(1);
+    if cfg.oversized_original == "refuse" {
+        return Err(ApiError::new(
+            axum::http::StatusCode::PAYLOAD_TOO_LARGE,
+            "limit.stored_bytes",
+            format!(
+                "the upload has {} bytes for {} vertices and {} faces; at most {cap} bytes \
+                 are stored for this geometry (stored_bytes_per_element = {}, \
+                 stored_bytes_floor = {})",
+                upload.len(),
+                mesh.vertices.len(),
+                mesh.faces.len(),
+                cfg.stored_bytes_per_element,
+                cfg.stored_bytes_floor
+            ),
+        ));
     }
-}
-
-struct QueuedGuard(Arc<PoolStats>);
-
-impl Drop for QueuedGuard {
-    fn drop(&mut self) {
-        self.0.queued.fetch_sub(1, Ordering::Relaxed);
-    }
+    let mut out = Vec::new();
+    crate::mesh::write::write_mesh(mesh, format, &mut out)?;
+    Ok((out.into(), Some(upload.len() as u64)))
 }
 
 /// Admission of request bodies: a size check on the announced `Content-Length` before any

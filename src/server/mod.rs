@@ -17,13 +17,17 @@
 //! problem+json for hyper's own error answers). Layers (outside in): request-id sanitiser →
 //! request id → trace → metrics → panic → problem+json catch-all → body
 //! admission ([`limits::admit_body`]: announced size, in-flight byte budget, read deadline) →
-//! body limit → per-request timeout (on `/v1`) → handlers. CPU work (reading, analysis, signatures)
-//! runs on the bounded [`limits::WorkPool`] (503 `server.busy` + `Retry-After` when full);
-//! ranking runs on rayon from a blocking thread. Configuration: [`ServerConfig`] (defaults <
+//! body limit → per-request timeout (on `/v1`, 503 `request.timeout` + `Retry-After`) →
+//! handlers. Every CPU job (ingest, the analysis of an uploaded query, a search with its rerank
+//! stages) is admitted by [`admission::Admission`] with an estimated cost: cheap and heavy
+//! lanes, heavy work on its own lower-priority thread pool, 503 `server.busy` + `Retry-After`
+//! when a lane is full, and a cancellation token that stops the work of an abandoned request. Configuration: [`ServerConfig`] (defaults <
 //! TOML file < `SHAPESEEK_*` environment < flags).
 
+pub mod admission;
 pub mod config;
 pub mod conn;
+pub mod env;
 pub mod handlers;
 pub mod limits;
 pub mod metrics;

@@ -6,7 +6,8 @@
 //! `spectrum.too_few_eigenpairs` 422, `request.invalid` 400. I/O, storage and corruption
 //! failures (`io`, `storage`, `storage.corrupt`) are the server's fault: 500 `server.internal`,
 //! with the library code and message in the log only. The server's own codes are
-//! `shape.not_found` (404), `server.busy` (503 with `Retry-After`), `server.internal` (500),
+//! `shape.not_found` (404), `server.busy` (503 with `Retry-After`), `request.timeout` (503 with
+//! `Retry-After`), `limit.stored_bytes` (413), `server.internal` (500),
 //! those its handlers raise (`shape.no_payload`, `server.not_ready`, ...) and, for statuses the HTTP layer produced without a body ([`code_for_status`]), `route.not_found`,
 //! `request.method_not_allowed`, `limit.bytes`, `request.unsupported_media_type`,
 //! `request.timeout`, `server.unavailable`, `server.internal` and `request.invalid`.

@@ -32,7 +32,10 @@ pub fn router(app: Arc<App>) -> Router {
         .route("/v1/shapes/{id}/signature", get(h::get_signature))
         .route("/v1/search", post(h::search))
         .route("/v1/index", get(h::index_info))
-        .layer(middleware::from_fn_with_state(timeout, timeout_mw));
+        .layer(middleware::from_fn_with_state(
+            (timeout, app.cfg.retry_after_secs),
+            timeout_mw,
+        ));
     Router::new()
         .merge(v1)
         .route("/healthz", get(h::healthz))
@@ -115,18 +118,39 @@ async fn fallback() -> ApiError {
     ApiError::new(StatusCode::NOT_FOUND, "route.not_found", "no such route")
 }
 
-async fn timeout_mw(State(t): State<Duration>, req: Request, next: Next) -> Response {
+/// The instant a request must be answered by (set by the timeout layer; CPU work of the
+/// request stops once it passes, see [`super::admission::Cancel`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Deadline(pub Instant);
+
+/// The deadline of a request, if it runs under the timeout layer.
+pub fn deadline_of(req: &Request) -> Option<Instant> {
+    req.extensions().get::<Deadline>().map(|d| d.0)
+}
+
+async fn timeout_mw(
+    State((t, retry_after)): State<(Duration, u64)>,
+    mut req: Request,
+    next: Next,
+) -> Response {
+    req.extensions_mut().insert(Deadline(Instant::now() + t));
+    // On timeout the handler's future is dropped, which trips the cancellation token of the
+    // CPU job it was waiting for.
     match tokio::time::timeout(t, next.run(req)).await {
         Ok(r) => r,
-        Err(_) => ApiError::new(
-            StatusCode::SERVICE_UNAVAILABLE,
-            "request.timeout",
-            format!(
-                "the request took longer than {:.1} s and was abandoned",
-                t.as_secs_f64()
-            ),
-        )
-        .into_response(),
+        Err(_) => {
+            metrics::counter!("shapeseek_requests_timed_out_total").increment(1);
+            let mut e = ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "request.timeout",
+                format!(
+                    "the request took longer than {:.1} s and was abandoned",
+                    t.as_secs_f64()
+                ),
+            );
+            e.retry_after = Some(retry_after);
+            e.into_response()
+        }
     }
 }
 

@@ -1,16 +1,18 @@
 //! The server's state and its non-HTTP operations: loading, ingest, delete, search,
 //! recalibration. Handlers only translate HTTP to these calls.
 
+use super::admission::{Admission, AdmissionConfig, Cancel, Cost};
 use super::config::ServerConfig;
-use super::limits::WorkPool;
+use super::env::ServerEnv;
+use super::limits::stored_original;
 use super::metrics as m;
 use super::problem::ApiError;
 use crate::index::{Engine, Inserted, ScanIndex, ShapeRecord, Store};
 use crate::mesh::read::{detect_format, read_mesh, Format, ReadLimits};
 use crate::ranking::{Calibration, QuerySpec};
-use crate::rerank::{compute_payload, gw_score, GwPayload, PayloadSpec, SgwStage};
+use crate::rerank::{compute_payload, GwPayload, PayloadSpec};
 use crate::search::corpus::{Corpus, Encoded, Layout};
-use crate::search::{Entry, Env, Query, Stage, StageRequest};
+use crate::search::{Entry, Query, Stage, StageRequest};
 use crate::signature::Signature;
 use crate::spectrum::analyze;
 use rayon::prelude::*;
@@ -37,8 +39,8 @@ pub struct App {
     pub engine: Arc<Engine>,
     /// The in-memory scan structure.
     pub scan: Arc<RwLock<ScanIndex>>,
-    /// Bounded CPU pool.
-    pub pool: WorkPool,
+    /// Admission of CPU work (cost model, two lanes, cancellation).
+    pub admission: Admission,
     /// Mesh limits applied to uploads.
     pub limits: ReadLimits,
     /// False until loaded, and again once shutting down.
@@ -95,6 +97,10 @@ pub struct IngestResult {
     /// Stage timings (absent when `created` is false).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub timings: Option<Timings>,
+    /// Size of the upload when it was far larger than its geometry and the stored original is
+    /// its canonical re-encoding (`shape.bytes`); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reencoded_from_bytes: Option<u64>,
 }
 
 pub use crate::search::stage::{MAX_GW_SHORTLIST, MAX_RECIPROCAL_SHORTLIST};
@@ -104,9 +110,9 @@ pub type RerankStage = StageRequest;
 
 /// A search candidate between stages: its id and name (`at` of the entry is its position in
 /// the scan while it is locked).
-struct Hitting {
-    id: String,
-    name: String,
+pub(super) struct Hitting {
+    pub(super) id: String,
+    pub(super) name: String,
 }
 
 /// A query analysed for search-by-example: signature, payload (when a stage needs it), timings.
@@ -221,8 +227,11 @@ impl App {
         mesh: &crate::mesh::Mesh,
         t: &mut Timings,
         with_payload: bool,
+        cancel: &Cancel,
     ) -> Result<(crate::spectrum::Analysis, Signature, Option<GwPayload>), ApiError> {
+        cancel.check()?;
         let analysis = analyze(mesh, &self.engine.analyze_options())?;
+        cancel.check()?;
         t.prepare_ms = analysis.timings.prepare_ms;
         t.laplacian_ms = analysis.timings.laplacian_ms;
         t.factorization_ms = analysis.timings.factorization_ms;
@@ -230,6 +239,7 @@ impl App {
         let t2 = Instant::now();
         let sig = self.engine.compute(&analysis)?;
         t.signature_ms = ms(t2);
+        cancel.check()?;
         let payload = if with_payload {
             let t3 = Instant::now();
             let p = compute_payload(&analysis, &PayloadSpec::default())?;
@@ -318,9 +328,16 @@ impl App {
             };
             ScanIndex::build(Arc::new(cal), on, shapes)
         };
-        let workers = cfg.effective_workers();
+        let admission = Admission::new(&AdmissionConfig {
+            workers: cfg.effective_workers(),
+            heavy_share: cfg.heavy_share,
+            queue_capacity: cfg.queue_capacity,
+            heavy_nice: cfg.heavy_nice,
+            retry_after: cfg.retry_after_secs,
+            request_timeout: std::time::Duration::from_secs_f64(cfg.request_timeout_secs),
+        })?;
         let app = App {
-            pool: WorkPool::new(workers, cfg.queue_capacity, cfg.retry_after_secs),
+            admission,
             cfg,
             store,
             engine,
@@ -351,7 +368,7 @@ impl App {
     }
 
     /// The stored re-ranking payload of a shape (`None` when it has none).
-    fn stored_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
+    pub(super) fn stored_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
         match self.store.payload(id).map_err(storage)? {
             None => Ok(None),
             Some(b) => GwPayload::from_bytes(&b).map(Some).map_err(|e| {
@@ -370,16 +387,29 @@ impl App {
 
     /// Ingests an upload: idempotent by SHA-256 of the bytes.
     pub async fn ingest(self: &Arc<Self>, up: Upload) -> Result<IngestResult, ApiError> {
+        self.ingest_until(up, None).await
+    }
+
+    /// Ingests an upload whose request must answer by `deadline`: admitted as heavy work
+    /// costing [`Cost::analysis`] of its size; stops (nothing stored) once abandoned.
+    pub async fn ingest_until(
+        self: &Arc<Self>,
+        up: Upload,
+        deadline: Option<Instant>,
+    ) -> Result<IngestResult, ApiError> {
         let t0 = Instant::now();
         let digest: [u8; 32] = Sha256::digest(&up.bytes).into();
         if let Some(r) = self.existing(&digest)? {
             return Ok(r);
         }
         let app = self.clone();
+        let cost = Cost::analysis(up.bytes.len());
         let res = self
-            .pool
-            .run(move || app.ingest_blocking(up, digest, t0))
-            .await??;
+            .admission
+            .run(cost, deadline, move |c| {
+                app.ingest_blocking(up, digest, t0, c)
+            })
+            .await?;
         if res.created {
             self.after_change();
         }
@@ -394,6 +424,7 @@ impl App {
                     created: false,
                     shape: rec,
                     timings: None,
+                    reencoded_from_bytes: None,
                 }));
             }
         }
@@ -405,6 +436,7 @@ impl App {
         up: Upload,
         digest: [u8; 32],
         t0: Instant,
+        cancel: &Cancel,
     ) -> Result<IngestResult, ApiError> {
         // A twin upload may have been stored while this one waited.
         if let Some(r) = self.existing(&digest)? {
@@ -415,9 +447,12 @@ impl App {
         let format = detect_format(&up.bytes, up.hint)?;
         let mesh = read_mesh(&up.bytes, Some(format), &self.limits)?;
         t.read_ms = ms(t1);
+        let (stored, reencoded_from) = stored_original(&self.cfg, &up.bytes, &mesh, format)?;
         let area = mesh.area();
-        let (analysis, sig, payload) = self.analyze_and_sign(&mesh, &mut t, true)?;
+        let (analysis, sig, payload) = self.analyze_and_sign(&mesh, &mut t, true, cancel)?;
         let payload = payload.map(|p| p.to_bytes());
+        // The last point where an abandoned ingest stops: past it the shape is stored.
+        cancel.check()?;
         let t3 = Instant::now();
         let id = self.store.new_id().map_err(storage)?;
         let record = ShapeRecord {
@@ -426,7 +461,7 @@ impl App {
             tags: up.tags.clone(),
             format: format.name().to_string(),
             content_type: format.mime().to_string(),
-            bytes: up.bytes.len() as u64,
+            bytes: stored.len() as u64,
             vertices: mesh.vertices.len(),
             faces: mesh.faces.len(),
             area,
@@ -438,7 +473,7 @@ impl App {
         let sig_bytes = self.engine.encode_signature(&sig);
         let outcome = self
             .store
-            .insert(&record, &digest, &sig_bytes, &up.bytes, payload.as_deref())
+            .insert(&record, &digest, &sig_bytes, &stored, payload.as_deref())
             .map_err(storage)?;
         let id = match outcome {
             Inserted::Existing(id) => {
@@ -471,6 +506,7 @@ impl App {
             created: true,
             shape: record,
             timings: Some(t),
+            reencoded_from_bytes: reencoded_from,
         })
     }
 
@@ -508,7 +544,11 @@ impl App {
         self.update_gauges();
         if self.needs_recalibration() && !self.recalibrating.swap(true, Ordering::AcqRel) {
             let app = self.clone();
-            tokio::task::spawn_blocking(move || app.recalibrate_loop());
+            // Recalibration is CPU work no request waits for: it runs on the heavy lane's
+            // threads, not beside cheap searches.
+            tokio::task::spawn_blocking(move || {
+                app.admission.on_heavy_pool(|| app.recalibrate_loop())
+            });
         }
     }
 
@@ -689,29 +729,34 @@ impl App {
         self: &Arc<Self>,
         up: Upload,
         with_payload: bool,
+        deadline: Option<Instant>,
     ) -> Result<QueryAnalysis, ApiError> {
         let app = self.clone();
         let t0 = Instant::now();
-        self.pool
-            .run(move || -> Result<QueryAnalysis, ApiError> {
-                let mut t = Timings::default();
-                let t1 = Instant::now();
-                let mesh = read_mesh(&up.bytes, up.hint, &app.limits)?;
-                t.read_ms = ms(t1);
-                let (_, sig, payload) = app.analyze_and_sign(&mesh, &mut t, with_payload)?;
-                t.total_ms = ms(t0);
-                Ok((sig, payload, t))
-            })
-            .await?
+        self.admission
+            .run(
+                Cost::analysis(up.bytes.len()),
+                deadline,
+                move |c| -> Result<QueryAnalysis, ApiError> {
+                    let mut t = Timings::default();
+                    let t1 = Instant::now();
+                    let mesh = read_mesh(&up.bytes, up.hint, &app.limits)?;
+                    t.read_ms = ms(t1);
+                    let (_, sig, payload) = app.analyze_and_sign(&mesh, &mut t, with_payload, c)?;
+                    t.total_ms = ms(t0);
+                    Ok((sig, payload, t))
+                },
+            )
+            .await
     }
 
-    /// Searches with a stored shape (`id`) or an analysed upload (`query_sig`).
-    pub async fn search(
-        self: &Arc<Self>,
-        opts: SearchOptions,
-        query_sig: Option<QueryAnalysis>,
-    ) -> Result<SearchResult, ApiError> {
-        let t0 = Instant::now();
+    /// The validated options of a search: `top_k`, the query spec (and its JSON form) and the
+    /// stages. Cheap: a search by upload calls it before analysing the upload, so options that
+    /// cannot be served cost no analysis.
+    pub fn resolve_options(
+        &self,
+        opts: &SearchOptions,
+    ) -> Result<(usize, QuerySpec, serde_json::Value, Vec<Stage>), ApiError> {
         // The default never exceeds the configured limit (a server with `max_top_k` below 10
         // answers its first `max_top_k` hits instead of refusing every search without `top_k`).
         let top_k = opts.top_k.unwrap_or(DEFAULT_TOP_K.min(self.cfg.max_top_k));
@@ -724,7 +769,19 @@ impl App {
         validate_tags(&opts.tags)?;
         let base = serde_json::to_value(self.engine.default_query()).map_err(ApiError::internal)?;
         let (spec, spec_json) = self.query_spec(&base, opts.spec.as_ref())?;
-        let stages = self.stages(&opts, top_k, &spec_json)?;
+        let stages = self.stages(opts, top_k, &spec_json)?;
+        Ok((top_k, spec, spec_json, stages))
+    }
+
+    /// Searches with a stored shape (`id`) or an analysed upload (`query_sig`).
+    pub async fn search(
+        self: &Arc<Self>,
+        opts: SearchOptions,
+        query_sig: Option<QueryAnalysis>,
+        deadline: Option<Instant>,
+    ) -> Result<SearchResult, ApiError> {
+        let t0 = Instant::now();
+        let (top_k, spec, spec_json, stages) = self.resolve_options(&opts)?;
         let (query_sig, upload_payload, analysis_t) = match query_sig {
             Some((s, p, t)) => (Some(s), p, Some(t)),
             None => (None, None, None),
@@ -739,8 +796,11 @@ impl App {
             .chain(stages.iter().map(|p| p.name().to_string()))
             .collect();
         let needs_payload = stages.iter().any(|p| p.payload_spec().is_some());
-        let (hits, epoch, candidates, scan_ms, rerank_ms) =
-            tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
+        let n = self.scan.read().unwrap_or_else(|p| p.into_inner()).len();
+        let cost = Cost::search(n, &stages);
+        let (hits, epoch, candidates, scan_ms, rerank_ms) = self
+            .admission
+            .run(cost, deadline, move |cancel| -> Result<_, ApiError> {
                 let guard = app.scan.read().unwrap_or_else(|p| p.into_inner());
                 let s = &*guard;
                 let Some(cal) = s.calibration().cloned() else {
@@ -786,6 +846,7 @@ impl App {
                     .max()
                     .unwrap_or(0)
                     .max(top_k);
+                cancel.check()?;
                 let t1 = Instant::now();
                 let q = Query::new(&spec, s.corpus().layout());
                 let list: Vec<Entry<Hitting>> = s
@@ -809,6 +870,7 @@ impl App {
                     query,
                     first: spec,
                     query_payload,
+                    cancel: cancel.clone(),
                 };
                 let mut list = crate::search::run(&stages, list, &mut env)?;
                 drop(env);
@@ -828,8 +890,7 @@ impl App {
                     .collect();
                 Ok((hits, epoch, candidates, scan_ms, rerank_ms))
             })
-            .await
-            .map_err(ApiError::internal)??;
+            .await?;
         Ok(SearchResult {
             hits,
             calibration_epoch: epoch,
@@ -851,101 +912,6 @@ fn invalid_detail(e: crate::Error) -> String {
     match e {
         crate::Error::InvalidArgument(m) => m,
         other => other.to_string(),
-    }
-}
-
-/// What the stages of a server search read: the scan (locked while a stage reads it, released
-/// during GW solves, which take up to seconds and would hold back writers and the readers
-/// queued behind them) and the store's payloads.
-struct ServerEnv<'a> {
-    app: &'a App,
-    scan: Option<std::sync::RwLockReadGuard<'a, ScanIndex>>,
-    query: Encoded,
-    first: QuerySpec,
-    query_payload: Option<GwPayload>,
-}
-
-impl ServerEnv<'_> {
-    /// The scan, locked again after a stage that ran unlocked: positions may have moved, and
-    /// shapes deleted meanwhile leave `list`.
-    fn relocked(&mut self, list: &mut Vec<Entry<Hitting>>) -> &ScanIndex {
-        if self.scan.is_none() {
-            let s = self
-                .scan
-                .insert(self.app.scan.read().unwrap_or_else(|p| p.into_inner()));
-            list.retain_mut(|e| match s.position(&e.item.id) {
-                Some(at) => {
-                    e.at = at;
-                    true
-                }
-                None => false,
-            });
-        }
-        self.scan.as_deref().expect("locked")
-    }
-}
-
-impl Env<Hitting> for ServerEnv<'_> {
-    type Error = ApiError;
-
-    fn rescore(
-        &mut self,
-        list: &mut Vec<Entry<Hitting>>,
-        query: &QuerySpec,
-    ) -> Result<Vec<f64>, ApiError> {
-        let qv = self.query.clone();
-        let s = self.relocked(list);
-        let c = s.corpus();
-        let q = Query::new(query, c.layout());
-        Ok(list
-            .iter()
-            .map(|e| q.score(c.layout(), qv.view(), c.shape(e.at)))
-            .collect())
-    }
-
-    fn pairwise(&mut self, list: &mut Vec<Entry<Hitting>>) -> Result<Vec<f64>, ApiError> {
-        let qv = self.query.clone();
-        let first = self.first.clone();
-        let s = self.relocked(list);
-        let c = s.corpus();
-        let q = Query::new(&first, c.layout());
-        // The query and the candidates, each pair once (the upper triangle).
-        let items: Vec<crate::search::ShapeRef<'_>> = std::iter::once(qv.view())
-            .chain(list.iter().map(|e| c.shape(e.at)))
-            .collect();
-        let m = items.len();
-        let rows: Vec<Vec<f64>> = (0..m)
-            .into_par_iter()
-            .map(|a| {
-                items[a + 1..]
-                    .iter()
-                    .map(|&b| q.score(c.layout(), items[a], b))
-                    .collect()
-            })
-            .collect();
-        let mut d = vec![0.0; m * m];
-        for (a, row) in rows.iter().enumerate() {
-            d[a * m + a + 1..(a + 1) * m].copy_from_slice(row);
-        }
-        Ok(d)
-    }
-
-    fn gw(&mut self, list: &[Entry<Hitting>], stage: &SgwStage) -> Result<Vec<f64>, ApiError> {
-        self.scan = None;
-        let Some(qp) = &self.query_payload else {
-            return Err(ApiError::internal("no query payload"));
-        };
-        let payloads: Vec<Option<GwPayload>> = list
-            .iter()
-            .map(|e| self.app.stored_payload(&e.item.id))
-            .collect::<Result<_, _>>()?;
-        Ok(payloads
-            .par_iter()
-            .map(|p| match p {
-                Some(p) => gw_score(qp, p, &stage.gw),
-                None => f64::INFINITY,
-            })
-            .collect())
     }
 }
 

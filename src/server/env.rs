@@ -1,0 +1,121 @@
+//! The server's [`Env`] for the rerank stages of a search: what the stages read (the scan's
+//! corpus, the stored re-ranking payloads), with the search's [`Cancel`] token checked before
+//! each stage and before each GW candidate, so an abandoned search stops within one candidate
+//! (≈ 40 ms of one core) instead of finishing its shortlist.
+
+use super::admission::Cancel;
+use super::problem::ApiError;
+use super::state::{App, Hitting};
+use crate::index::ScanIndex;
+use crate::ranking::QuerySpec;
+use crate::rerank::{gw_score, GwPayload, SgwStage};
+use crate::search::corpus::Encoded;
+use crate::search::{Entry, Env, Query};
+use rayon::prelude::*;
+
+/// What the stages of a server search read: the scan (locked while a stage reads it, released
+/// during GW solves, which take up to seconds and would hold back writers and the readers
+/// queued behind them) and the store's payloads.
+pub(super) struct ServerEnv<'a> {
+    pub(super) app: &'a App,
+    pub(super) scan: Option<std::sync::RwLockReadGuard<'a, ScanIndex>>,
+    pub(super) query: Encoded,
+    pub(super) first: QuerySpec,
+    pub(super) query_payload: Option<GwPayload>,
+    /// The search's cancellation token.
+    pub(super) cancel: Cancel,
+}
+
+impl ServerEnv<'_> {
+    /// The scan, locked again after a stage that ran unlocked: positions may have moved, and
+    /// shapes deleted meanwhile leave `list`.
+    fn relocked(&mut self, list: &mut Vec<Entry<Hitting>>) -> &ScanIndex {
+        if self.scan.is_none() {
+            let s = self
+                .scan
+                .insert(self.app.scan.read().unwrap_or_else(|p| p.into_inner()));
+            list.retain_mut(|e| match s.position(&e.item.id) {
+                Some(at) => {
+                    e.at = at;
+                    true
+                }
+                None => false,
+            });
+        }
+        self.scan.as_deref().expect("locked")
+    }
+}
+
+impl Env<Hitting> for ServerEnv<'_> {
+    type Error = ApiError;
+
+    fn rescore(
+        &mut self,
+        list: &mut Vec<Entry<Hitting>>,
+        query: &QuerySpec,
+    ) -> Result<Vec<f64>, ApiError> {
+        self.cancel.check()?;
+        let qv = self.query.clone();
+        let s = self.relocked(list);
+        let c = s.corpus();
+        let q = Query::new(query, c.layout());
+        Ok(list
+            .iter()
+            .map(|e| q.score(c.layout(), qv.view(), c.shape(e.at)))
+            .collect())
+    }
+
+    fn pairwise(&mut self, list: &mut Vec<Entry<Hitting>>) -> Result<Vec<f64>, ApiError> {
+        self.cancel.check()?;
+        let qv = self.query.clone();
+        let first = self.first.clone();
+        let s = self.relocked(list);
+        let c = s.corpus();
+        let q = Query::new(&first, c.layout());
+        // The query and the candidates, each pair once (the upper triangle).
+        let items: Vec<crate::search::ShapeRef<'_>> = std::iter::once(qv.view())
+            .chain(list.iter().map(|e| c.shape(e.at)))
+            .collect();
+        let m = items.len();
+        let rows: Vec<Vec<f64>> = (0..m)
+            .into_par_iter()
+            .map(|a| {
+                items[a + 1..]
+                    .iter()
+                    .map(|&b| q.score(c.layout(), items[a], b))
+                    .collect()
+            })
+            .collect();
+        let mut d = vec![0.0; m * m];
+        for (a, row) in rows.iter().enumerate() {
+            d[a * m + a + 1..(a + 1) * m].copy_from_slice(row);
+        }
+        Ok(d)
+    }
+
+    fn gw(&mut self, list: &[Entry<Hitting>], stage: &SgwStage) -> Result<Vec<f64>, ApiError> {
+        self.cancel.check()?;
+        self.scan = None;
+        let Some(qp) = &self.query_payload else {
+            return Err(ApiError::internal("no query payload"));
+        };
+        let (cancel, app) = (&self.cancel, self.app);
+        // Each candidate reads its payload and solves its GW problem only while the search is
+        // wanted: an abandoned search stops after the candidates already started.
+        let scores: Vec<Result<f64, ApiError>> = list
+            .par_iter()
+            .map(|e| {
+                if cancel.is_cancelled() {
+                    cancel.note_skipped();
+                    return Ok(f64::NAN);
+                }
+                Ok(match app.stored_payload(&e.item.id)? {
+                    Some(p) => gw_score(qp, &p, &stage.gw),
+                    None => f64::INFINITY,
+                })
+            })
+            .collect();
+        self.cancel.check()?;
+        scores.into_iter().collect()
+    }
+}
