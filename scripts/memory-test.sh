@@ -14,7 +14,8 @@
 # 5xx other than 503. BOUND_MIB defaults to the bound documented in docs/reliability.md for
 # the default limits: 64 + max_inflight_body_bytes (256) + heavy_threads × 2 × max_body_bytes
 # (128 each) MiB, heavy_threads = max(1, min(⌊0.75 · cores⌋, cores − 1)).
-# CARGO_TARGET_DIR is honoured; the temporary directory is removed at exit.
+# CARGO_TARGET_DIR is honoured (SHAPESEEK_BIN runs that binary instead of building); the
+# temporary directory is removed at exit.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 C="${1:-16}"
@@ -23,8 +24,12 @@ CORES="$(nproc)"
 HEAVY=$((CORES * 3 / 4)); [ "$HEAVY" -gt $((CORES - 1)) ] && HEAVY=$((CORES - 1)); [ "$HEAVY" -lt 1 ] && HEAVY=1
 BOUND_MIB="${BOUND_MIB:-$((64 + 256 + HEAVY * 128))}"
 TARGET="${CARGO_TARGET_DIR:-$PWD/target}"
-BIN="$TARGET/release/shapeseek"
-cargo build --quiet --release --bin shapeseek
+if [ -n "${SHAPESEEK_BIN:-}" ]; then
+  BIN="$SHAPESEEK_BIN" # another build, e.g. the code before the fix
+else
+  BIN="$TARGET/release/shapeseek"
+  cargo build --quiet --release --bin shapeseek
+fi
 WORK="$(mktemp -d)"
 PID=""
 cleanup() {
