@@ -127,9 +127,9 @@ impl Layout {
 /// Quantises `prob` (non-negative; normalised here) to counts summing to `TOTAL · 2^s` and
 /// returns `s`: the largest exponent ≤ [`MAX_SHIFT`] for which every count fits in a `u16`.
 /// Largest-remainder rounding (ties to the lower bin), except that a positive probability gets
-/// at least one count (the excess is taken back from the bins rounded up least, then from the
-/// largest counts). Every count is within two units of `p · T_s`; all zeros (and `s = 0`) when
-/// the sum is not positive.
+/// at least one count (the excess is taken back, one count at a time, from the bins whose
+/// remainder is smallest, never below one count). The counts move by less than `2 · bins` units
+/// in all; all zeros (and `s = 0`) when the sum is not positive.
 pub fn quantise(prob: &[f64], out: &mut [u16]) -> u8 {
     let total: f64 = prob.iter().map(|p| p.max(0.0)).sum();
     if !(total > 0.0 && total.is_finite()) {
@@ -145,12 +145,16 @@ pub fn quantise(prob: &[f64], out: &mut [u16]) -> u8 {
     }
     let target = (TOTAL as u64) << shift;
     let t = target as f64;
+    // Keeping every positive bin is possible (and the take-back below ends) while the positive
+    // bins are at most half the total: always so at 256 bins.
+    let positives = prob.iter().filter(|&&p| p > 0.0).count() as u64;
+    let keep_positive = 2 * positives <= target;
     let mut frac: Vec<(f64, usize)> = Vec::with_capacity(prob.len());
     let mut sum = 0u64;
     for (b, (&p, o)) in prob.iter().zip(out.iter_mut()).enumerate() {
         let x = (p.max(0.0) / total * t).min(u16::MAX as f64);
         let mut f = x.floor();
-        if p > 0.0 && f < 1.0 {
+        if keep_positive && p > 0.0 && f < 1.0 {
             f = 1.0;
         }
         *o = f as u16;

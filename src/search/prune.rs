@@ -283,10 +283,10 @@ impl<'a> Bounder<'a> {
             // A row sums within `u32`: entries below 2^24 (scale 2^MAX_SHIFT ≤ 2^8), ≤ 255 of them.
             Some(used) if q.dissimilarity == Dissimilarity::NL1 && stride <= 255 => {
                 let mut row = vec![0u32; stride];
-                let mut slots: Vec<usize> = used.into_iter().flatten().map(|qc| qc.slot).collect();
-                for qc in channels.iter().flatten() {
-                    let r = qc.slot * l.groups..(qc.slot + 1) * l.groups;
-                    row[r].copy_from_slice(&qc.groups);
+                let mut slots = Vec::new();
+                for qc in used.into_iter().flatten() {
+                    row[qc.slot * l.groups..(qc.slot + 1) * l.groups].copy_from_slice(&qc.groups);
+                    slots.push(qc.slot);
                 }
                 slots.sort_unstable();
                 let n = slots.len();

@@ -17,9 +17,9 @@
 //! `heavy_threads` is `heavy_share` of the workers, and at most `workers − 1` when there are
 //! two or more and `heavy_share` < 1, so cheap work always has a core that heavy work cannot
 //! take: twelve GW searches over a shortlist of 200 queue behind each other in the heavy lane
-//! while a scan-only search still answers in milliseconds. Inside a lane the order is first
-//! come, first served (tokio's semaphore is fair; a job runs without queueing only when nothing
-//! waits).
+//! while a scan-only search still answers in milliseconds. Inside a lane waiters form two
+//! first-come-first-served classes (small and large jobs, see [`LARGE_UNITS`]) served
+//! alternately; a job runs without queueing only when nothing waits.
 //!
 //! **Refusal.** A lane whose queue is full refuses at once with 503 `server.busy` and
 //! `Retry-After`; so does the heavy lane when the work already ahead of a job (the units of the
