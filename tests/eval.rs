@@ -621,6 +621,56 @@ fn end_to_end_on_generated_meshes_with_cache() {
     assert_eq!(ap1, ap3);
 }
 
+/// `--check-encoding` on the generated benchmark: every paper configuration (six heat scales,
+/// every dissimilarity, single and aggregated; commute time; baselines) ranked on the `f64`
+/// histograms agrees with the corpus encoding within 0.1 point of All mAP once rounding ties are
+/// merged on both sides, and the check's rows carry the run's own figures.
+#[test]
+fn encoding_check_on_generated_meshes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let manifest = generated_bench(tmp.path());
+    let mut args = EvalOptions::new(&manifest);
+    args.k = 60; // ShapeDNA[50] needs 50 non-zero eigenvalues
+    args.config = Some("paper".into());
+    args.cache = Some(tmp.path().join("cache"));
+    args.check_encoding = true;
+    let out = run_eval(&args).unwrap();
+    let check = out.encoding_check.as_ref().expect("the check ran");
+    assert_eq!(check.rows.len(), out.results.len());
+    for (row, res) in check.rows.iter().zip(&out.results) {
+        assert_eq!(row.name, res.name);
+        let run_all = 100.0 * res.eval.group(ALL).unwrap().map.unwrap();
+        assert!((row.encoded_raw_all - run_all).abs() < 1e-9, "{}", row.name);
+        assert!(
+            row.all_abs_diff <= shapeseek::eval::encoding_check::ACCEPTED_POINTS,
+            "{}: {:.3} points in All\n{}",
+            row.name,
+            row.all_abs_diff,
+            check.markdown()
+        );
+    }
+    assert!(out.markdown.contains("## Encoding check"));
+}
+
+/// CI: `--check-encoding` over every configuration on the shared `bench/mini` split: All mAP
+/// within 0.1 point of the `f64` reference for every one.
+#[test]
+fn encoding_check_on_mini_bench() {
+    let manifest = "../shared/bench/mini/manifest.csv";
+    if !Path::new(manifest).is_file() {
+        println!("SKIPPED: ../shared/bench/mini not found");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let mut args = EvalOptions::new(manifest);
+    args.cache = Some(tmp.path().join("cache"));
+    args.check_encoding = true;
+    let out = run_eval(&args).unwrap();
+    let check = out.encoding_check.as_ref().expect("the check ran");
+    println!("{}", check.markdown());
+    assert_eq!(check.within_all(), check.rows.len(), "{}", check.markdown());
+}
+
 /// `eval --config default` on `../shared/bench/<split>` from an empty cache (printed), or `None`
 /// after saying so when the shared data is not there.
 fn default_on_shared_split(split: &str) -> Option<shapeseek::eval::EvalOutcome> {

@@ -106,6 +106,11 @@ pub struct EvalArgs {
     /// paper --loco-exclude-fixed`: what the protocol picks among the paper's methods alone).
     #[arg(long)]
     pub loco_exclude_fixed: bool,
+    /// Also rank every configuration on the f64 histograms of its definition and report, per
+    /// configuration, the difference the search's compact corpus encoding makes (ties at
+    /// rounding level merged; section "Encoding check", `encoding_check` in `--json`).
+    #[arg(long)]
+    pub check_encoding: bool,
 }
 
 impl EvalArgs {
@@ -156,6 +161,7 @@ impl EvalArgs {
             no_normalize: self.no_normalize,
             matrices: self.matrices.clone(),
             loco,
+            check_encoding: self.check_encoding,
         })
     }
 }

@@ -32,6 +32,7 @@
 //! once per shape.
 
 pub mod cache;
+pub mod encoding_check;
 pub mod loco;
 pub mod manifest;
 pub mod metrics;
@@ -116,6 +117,9 @@ pub struct EvalOptions {
     /// Also run the leave-one-class-out protocol ([`loco`]) over the configurations (the
     /// candidates) and report it ([`EvalOutcome::loco`], the JSON's `loco`, `loco.md` in `out`).
     pub loco: Option<loco::LocoOptions>,
+    /// Also rank every configuration on the `f64` histograms of its definition and report the
+    /// difference the corpus encoding makes ([`encoding_check`]; the JSON's `encoding_check`).
+    pub check_encoding: bool,
 }
 
 impl EvalOptions {
@@ -141,6 +145,7 @@ impl EvalOptions {
             window_percentile: 0.95,
             matrices: None,
             loco: None,
+            check_encoding: false,
         }
     }
 }
@@ -196,6 +201,8 @@ pub struct EvalOutcome {
     pub markdown: String,
     /// The leave-one-class-out report, when [`EvalOptions::loco`] asked for it.
     pub loco: Option<loco::LocoReport>,
+    /// The encoding check, when [`EvalOptions::check_encoding`] asked for it.
+    pub encoding_check: Option<encoding_check::EncodingCheck>,
 }
 
 impl EvalOutcome {
@@ -363,7 +370,7 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
 
     // Calibration and histograms, per union specification.
     let t_cal = Instant::now();
-    let corpora: Vec<Corpus> = specs
+    let cals: Vec<ranking::Calibration> = specs
         .iter()
         .enumerate()
         .map(|(g, spec)| {
@@ -371,7 +378,7 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
                 .iter()
                 .map(|&i| &shape_results[i].as_ref().unwrap()[g])
                 .collect();
-            let cal = ranking::calibrate_with(
+            ranking::calibrate_with(
                 &sigs,
                 spec,
                 0,
@@ -379,18 +386,42 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
                     percentile: args.window_percentile,
                     ..Default::default()
                 },
-            );
-            let layout = Layout::of(&cal);
+            )
+        })
+        .collect();
+    let corpora: Vec<Corpus> = cals
+        .iter()
+        .enumerate()
+        .map(|(g, cal)| {
+            let layout = Layout::of(cal);
             let rows: Vec<Encoded> = shape_results
                 .par_iter()
                 .map(|r| match r {
-                    Ok(s) => Encoded::from_signature(&s[g], &cal, &layout),
+                    Ok(s) => Encoded::from_signature(&s[g], cal, &layout),
                     Err(_) => Encoded::absent(&layout),
                 })
                 .collect();
             Corpus::build(layout, &rows)
         })
         .collect();
+    // The f64 histograms of the definition, for `--check-encoding` only.
+    let prepared: Vec<Vec<Option<ranking::Prepared>>> = if args.check_encoding {
+        cals.iter()
+            .enumerate()
+            .map(|(g, cal)| {
+                shape_results
+                    .par_iter()
+                    .map(|r| {
+                        r.as_ref()
+                            .ok()
+                            .map(|s| ranking::prepare_for_ranking(&s[g], cal))
+                    })
+                    .collect()
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
     let calibration_histograms_s = t_cal.elapsed().as_secs_f64();
     // Re-ranking payloads, one set per distinct payload specification.
     let mut rerank_notes = String::new();
@@ -450,6 +481,10 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         .as_ref()
         .map(|_| loco::HeldIn::new(&classes, class_ids.len(), &included));
     let mut candidate: Vec<bool> = Vec::new();
+    let mut reference_cache: Vec<encoding_check::ReferenceMatrices> = (0..prepared.len())
+        .map(|_| encoding_check::ReferenceMatrices::default())
+        .collect();
+    let mut check_rows = Vec::new();
     for (c, cfg) in configs.iter().enumerate() {
         let g = group_of[c];
         let corpus = &corpora[g];
@@ -497,6 +532,21 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
             );
         }
         metrics_s += t.elapsed().as_secs_f64();
+        if args.check_encoding {
+            let t = Instant::now();
+            check_rows.push(check_configuration(
+                cfg,
+                (&cur, &eval),
+                &mut reference_cache[g],
+                &prepared[g],
+                corpus.layout(),
+                &included,
+                &payload_sets,
+                &mut solved_pairs,
+                (&classes, &transforms, &strengths),
+            ));
+            metrics_s += t.elapsed().as_secs_f64();
+        }
         results.push(ConfigResult {
             name: cfg.name.clone(),
             eval,
@@ -554,6 +604,14 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         }
     }
     drop(channel_cache);
+    drop(reference_cache);
+    let check = args
+        .check_encoding
+        .then_some(encoding_check::EncodingCheck {
+            tie_tolerance: encoding_check::TIE_TOLERANCE,
+            accepted_points: encoding_check::ACCEPTED_POINTS,
+            rows: check_rows,
+        });
     let loco_report = held_in.map(|h| {
         let fixed = args
             .loco
@@ -634,6 +692,9 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
     if !rerank_notes.is_empty() {
         markdown.push_str(&format!("\n## Re-ranking\n\n{rerank_notes}"));
     }
+    if let Some(ch) = &check {
+        markdown.push_str(&format!("\n{}", ch.markdown()));
+    }
     if let Some(r) = &loco_report {
         let section = r.markdown();
         if let Some(dir) = &args.out {
@@ -658,6 +719,12 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         &serde_json::to_value(&timings).unwrap_or(Value::Null),
         extra,
     );
+    if let (Some(ch), Some(o)) = (&check, json_doc.as_object_mut()) {
+        o.insert(
+            "encoding_check".into(),
+            serde_json::to_value(ch).unwrap_or(Value::Null),
+        );
+    }
     if let (Some(r), Some(o)) = (&loco_report, json_doc.as_object_mut()) {
         o.insert(
             "loco".into(),
@@ -680,6 +747,7 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         json: json_doc,
         markdown,
         loco: loco_report,
+        encoding_check: check,
     })
 }
 
@@ -704,6 +772,49 @@ fn apply_stage(
         .filter(|p| !p.is_empty())
         .unwrap_or(&none);
     rerank::rerank_matrix(base, cur, n, included, payloads, st, rescore, solved_pairs)
+}
+
+/// One configuration of `--check-encoding`: its ranking (with its own stages) on the `f64`
+/// histograms, evaluated with and without merging rounding ties, beside `encoded`.
+#[allow(clippy::too_many_arguments)]
+fn check_configuration(
+    cfg: &Config,
+    encoded: (&[f64], &Evaluation),
+    mats: &mut encoding_check::ReferenceMatrices,
+    prepared: &[Option<ranking::Prepared>],
+    layout: &Layout,
+    included: &[bool],
+    payload_sets: &[(String, Vec<Option<crate::rerank::GwPayload>>)],
+    solved_pairs: &mut rerank::PairCache,
+    labels: (&[usize], &[String], &[i64]),
+) -> encoding_check::CheckRow {
+    let n = prepared.len();
+    let base = mats.aggregate(prepared, layout, included, &cfg.query);
+    let rescore = |q: usize, j: usize, spec: &QuerySpec| {
+        encoding_check::reference_score(prepared, layout, spec, q, j)
+    };
+    let mut cur = base.clone();
+    for st in &cfg.rerank {
+        let (next, _) = apply_stage(
+            st,
+            &base,
+            &cur,
+            n,
+            included,
+            payload_sets,
+            &rescore,
+            solved_pairs,
+        );
+        cur = next;
+    }
+    let (classes, transforms, strengths) = labels;
+    let reference =
+        encoding_check::evaluate_with_ties(cur, n, classes, transforms, strengths, included);
+    let (enc_dist, enc_eval) = encoded;
+    let mut merged = enc_dist.to_vec();
+    encoding_check::merge_rounding_ties(&mut merged, n, encoding_check::TIE_TOLERANCE);
+    let enc_ties = metrics::evaluate(&merged, n, classes, transforms, strengths, included);
+    encoding_check::compare(&cfg.name, &(enc_ties, enc_eval.clone()), &reference)
 }
 
 /// The report's line about one re-ranking stage (also printed unless `quiet`).
