@@ -26,6 +26,7 @@
 //! depend on the encoding).
 
 use super::metrics::{self, Evaluation, ALL};
+use crate::presets::Config;
 use crate::ranking::{self, Dissimilarity, Prepared, QuerySpec};
 use crate::search::corpus::Layout;
 use crate::search::Query;
@@ -286,6 +287,47 @@ pub fn evaluate_with_ties(
     merge_rounding_ties(&mut dist, n, TIE_TOLERANCE);
     let ties = metrics::evaluate(&dist, n, classes, transforms, strengths, included);
     (ties, raw)
+}
+
+/// One configuration of `--check-encoding`: its ranking (with its own stages) on the `f64`
+/// histograms, evaluated with and without merging rounding ties, beside `encoded`.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn check_configuration(
+    cfg: &Config,
+    encoded: (&[f64], &Evaluation),
+    mats: &mut ReferenceMatrices,
+    prepared: &[Option<ranking::Prepared>],
+    layout: &Layout,
+    included: &[bool],
+    payload_sets: &[(String, Vec<Option<crate::rerank::GwPayload>>)],
+    solved_pairs: &mut super::rerank::PairCache,
+    labels: (&[usize], &[String], &[i64]),
+) -> CheckRow {
+    let n = prepared.len();
+    let base = mats.aggregate(prepared, layout, included, &cfg.query);
+    let rescore =
+        |q: usize, j: usize, spec: &QuerySpec| reference_score(prepared, layout, spec, q, j);
+    let mut cur = base.clone();
+    for st in &cfg.rerank {
+        let (next, _) = super::apply_stage(
+            st,
+            &base,
+            &cur,
+            n,
+            included,
+            payload_sets,
+            &rescore,
+            solved_pairs,
+        );
+        cur = next;
+    }
+    let (classes, transforms, strengths) = labels;
+    let reference = evaluate_with_ties(cur, n, classes, transforms, strengths, included);
+    let (enc_dist, enc_eval) = encoded;
+    let mut merged = enc_dist.to_vec();
+    merge_rounding_ties(&mut merged, n, TIE_TOLERANCE);
+    let enc_ties = metrics::evaluate(&merged, n, classes, transforms, strengths, included);
+    compare(&cfg.name, &(enc_ties, enc_eval.clone()), &reference)
 }
 
 #[cfg(test)]

@@ -534,7 +534,7 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         metrics_s += t.elapsed().as_secs_f64();
         if args.check_encoding {
             let t = Instant::now();
-            check_rows.push(check_configuration(
+            check_rows.push(encoding_check::check_configuration(
                 cfg,
                 (&cur, &eval),
                 &mut reference_cache[g],
@@ -772,49 +772,6 @@ fn apply_stage(
         .filter(|p| !p.is_empty())
         .unwrap_or(&none);
     rerank::rerank_matrix(base, cur, n, included, payloads, st, rescore, solved_pairs)
-}
-
-/// One configuration of `--check-encoding`: its ranking (with its own stages) on the `f64`
-/// histograms, evaluated with and without merging rounding ties, beside `encoded`.
-#[allow(clippy::too_many_arguments)]
-fn check_configuration(
-    cfg: &Config,
-    encoded: (&[f64], &Evaluation),
-    mats: &mut encoding_check::ReferenceMatrices,
-    prepared: &[Option<ranking::Prepared>],
-    layout: &Layout,
-    included: &[bool],
-    payload_sets: &[(String, Vec<Option<crate::rerank::GwPayload>>)],
-    solved_pairs: &mut rerank::PairCache,
-    labels: (&[usize], &[String], &[i64]),
-) -> encoding_check::CheckRow {
-    let n = prepared.len();
-    let base = mats.aggregate(prepared, layout, included, &cfg.query);
-    let rescore = |q: usize, j: usize, spec: &QuerySpec| {
-        encoding_check::reference_score(prepared, layout, spec, q, j)
-    };
-    let mut cur = base.clone();
-    for st in &cfg.rerank {
-        let (next, _) = apply_stage(
-            st,
-            &base,
-            &cur,
-            n,
-            included,
-            payload_sets,
-            &rescore,
-            solved_pairs,
-        );
-        cur = next;
-    }
-    let (classes, transforms, strengths) = labels;
-    let reference =
-        encoding_check::evaluate_with_ties(cur, n, classes, transforms, strengths, included);
-    let (enc_dist, enc_eval) = encoded;
-    let mut merged = enc_dist.to_vec();
-    encoding_check::merge_rounding_ties(&mut merged, n, encoding_check::TIE_TOLERANCE);
-    let enc_ties = metrics::evaluate(&merged, n, classes, transforms, strengths, included);
-    encoding_check::compare(&cfg.name, &(enc_ties, enc_eval.clone()), &reference)
 }
 
 /// The report's line about one re-ranking stage (also printed unless `quiet`).
