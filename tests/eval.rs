@@ -656,14 +656,9 @@ fn encoding_check_on_generated_meshes() {
 /// within 0.1 point of the `f64` reference for every one.
 #[test]
 fn encoding_check_on_mini_bench() {
-    let manifest = "../shared/bench/mini/manifest.csv";
-    if !Path::new(manifest).is_file() {
-        println!("SKIPPED: ../shared/bench/mini not found");
+    let Some((_tmp, mut args)) = shared_split_options("mini") else {
         return;
-    }
-    let tmp = tempfile::tempdir().unwrap();
-    let mut args = EvalOptions::new(manifest);
-    args.cache = Some(tmp.path().join("cache"));
+    };
     args.check_encoding = true;
     let out = run_eval(&args).unwrap();
     let check = out.encoding_check.as_ref().expect("the check ran");
@@ -671,9 +666,9 @@ fn encoding_check_on_mini_bench() {
     assert_eq!(check.within_all(), check.rows.len(), "{}", check.markdown());
 }
 
-/// `eval --config default` on `../shared/bench/<split>` from an empty cache (printed), or `None`
-/// after saying so when the shared data is not there.
-fn default_on_shared_split(split: &str) -> Option<shapeseek::eval::EvalOutcome> {
+/// Options for `../shared/bench/<split>` with an empty cache in a temporary folder (kept alive
+/// by the returned guard), or `None` after printing `SKIPPED:` when the shared data is absent.
+fn shared_split_options(split: &str) -> Option<(tempfile::TempDir, EvalOptions)> {
     let manifest = format!("../shared/bench/{split}/manifest.csv");
     if !Path::new(&manifest).is_file() {
         println!("SKIPPED: ../shared/bench/{split} not found");
@@ -681,8 +676,15 @@ fn default_on_shared_split(split: &str) -> Option<shapeseek::eval::EvalOutcome> 
     }
     let tmp = tempfile::tempdir().unwrap();
     let mut args = EvalOptions::new(&manifest);
-    args.config = Some("default".into());
     args.cache = Some(tmp.path().join("cache"));
+    Some((tmp, args))
+}
+
+/// `eval --config default` on `../shared/bench/<split>` from an empty cache (printed), or `None`
+/// after saying so when the shared data is not there.
+fn default_on_shared_split(split: &str) -> Option<shapeseek::eval::EvalOutcome> {
+    let (_tmp, mut args) = shared_split_options(split)?;
+    args.config = Some("default".into());
     let out = run_eval(&args).unwrap();
     assert!(out.failures.is_empty(), "{:?}", out.failures);
     println!("{split}, default config:\n{}", out.markdown);
@@ -904,15 +906,10 @@ fn loco_selection_and_scoring_by_hand() {
 /// re-run per fold, the figures consistent with the standard run's per-query APs.
 #[test]
 fn loco_on_mini_bench() {
-    let manifest = "../shared/bench/mini/manifest.csv";
-    if !Path::new(manifest).is_file() {
-        println!("SKIPPED: ../shared/bench/mini not found");
+    let Some((tmp, mut args)) = shared_split_options("mini") else {
         return;
-    }
-    let tmp = tempfile::tempdir().unwrap();
-    let mut args = EvalOptions::new(manifest);
+    };
     args.config = Some("Heat-L2-nL1-Single[t=0.1],Heat-L2-nL1-Sum[t=0.016..0.1],GPS".into());
-    args.cache = Some(tmp.path().join("cache"));
     args.json = Some(tmp.path().join("loco.json"));
     args.out = Some(tmp.path().join("out"));
     args.loco = Some(LocoOptions::default());
