@@ -183,4 +183,20 @@ mod tests {
         // The eigenpair count is still the `-k` suffix (read back by the migrations).
         assert_eq!(b.rsplit_once("-k").map(|x| x.1), Some("100"));
     }
+
+    /// An index built by the default before handle cutting (same spec without `cut_handles`)
+    /// has another key, so the server recomputes its signatures from the stored originals; and
+    /// the default's analysis options cut handles.
+    #[test]
+    fn the_default_with_cutting_makes_indexes_built_without_it_stale() {
+        let now = Engine::new();
+        let mut before = Engine::new();
+        before.config.signature.cut_handles = None;
+        assert_ne!(now.spec_key(), before.spec_key());
+        assert_eq!(
+            now.analyze_options().prepare.cut_handles,
+            Some(presets::DEFAULT_HANDLE_CUT)
+        );
+        assert_eq!(before.analyze_options().prepare.cut_handles, None);
+    }
 }
