@@ -401,6 +401,7 @@ fn prepare_report() -> PrepareReport {
         read_repairs: Vec::new(),
         original_area: 1.25,
         scale_factor: 0.894_427_190_999_915_9,
+        handle_cut: None,
     }
 }
 

@@ -284,3 +284,175 @@ fn bad_input_is_refused() {
     };
     assert!(cut_handles(&torus(2.0, 0.5, 10, 6), &opts).is_err());
 }
+
+/// A C-shaped body welded shut: a ring of radius 1 around the z-axis whose tube (radius
+/// `thick`) ends at both tips of a gap of `gap` radians in hemispherical caps, and a short thin
+/// tube of radius `weld` across the gap joining the two caps' poles. Topologically a torus;
+/// geometrically the bench's weld: two parts far apart along the surface (the tips, ≈ 2π apart)
+/// joined by a short tube that flares into the body within a tube radius on both sides.
+fn welded_c(thick: f64, weld: f64, gap: f64, nu: usize, nv: usize) -> Mesh {
+    let mut m = torus(1.0, 1.0, nu, nv);
+    let half = 0.5 * gap;
+    for (idx, p) in m.vertices.iter_mut().enumerate() {
+        let (i, j) = (idx / nv, idx % nv);
+        let u = 2.0 * PI * i as f64 / nu as f64;
+        let w = 2.0 * PI * j as f64 / nv as f64;
+        // Arc distance from the nearer tip of the C (negative inside the gap, centred on u = 0).
+        let a = u.min(2.0 * PI - u);
+        let d = a - half;
+        let cap = if d <= 0.0 {
+            0.0
+        } else if d < thick {
+            (thick * thick - (thick - d) * (thick - d)).sqrt()
+        } else {
+            thick
+        };
+        let minor = cap.max(weld);
+        let rr = 1.0 + minor * w.cos();
+        *p = [rr * u.cos(), rr * u.sin(), minor * w.sin()];
+    }
+    m
+}
+
+#[test]
+fn welded_neck_is_cut_and_deterministic() {
+    use shapeseek::mesh::prepare::{prepare, PrepareOptions};
+    let m = welded_c(0.25, 0.06, 0.12, 360, 24);
+    assert_eq!(genus(&m), 1);
+    for opts in [
+        shapeseek::presets::DEFAULT_HANDLE_CUT,
+        HandleCutOptions::default(),
+        HandleCutOptions {
+            max_neck_aspect: 1e9,
+            max_loop_rel: 0.2,
+            ..Default::default()
+        },
+    ] {
+        let (out, rep) = cut_handles(&m, &opts).unwrap();
+        assert_eq!(rep.cuts, 1, "{rep:?}");
+        assert_eq!(rep.after.genus, Some(0), "{rep:?}");
+        assert_eq!(genus(&out), 0);
+        assert!(rep.area_kept > 0.97 && rep.area_kept < 1.0, "{rep:?}");
+        // The loop cut goes around the weld tube (circumference 2π·0.06 ≈ 0.377), not the body.
+        let l = rep.loops.iter().find(|l| l.cut).unwrap();
+        assert!(
+            (l.length - 2.0 * PI * 0.06).abs() < 0.05,
+            "cut loop length {}",
+            l.length
+        );
+        // Deterministic: the same input gives the same output, bit for bit.
+        let (again, rep2) = cut_handles(&m, &opts).unwrap();
+        assert_eq!(again, out);
+        assert_eq!(rep2, rep);
+        // Through preparation: one cut, genus 0, unit area, > 97 % of the area kept, and the
+        // vertex map points every kept input vertex at the same position (up to normalisation).
+        let popts = PrepareOptions {
+            cut_handles: Some(opts.clone()),
+            normalize_area: false,
+            ..PrepareOptions::default()
+        };
+        let (p, r, map) = shapeseek::mesh::prepare::prepare_with_map(&m, &popts).expect("prepared");
+        let hc = r.handle_cut.clone().expect("summary");
+        assert_eq!(
+            (hc.cuts, hc.genus_before, hc.genus_after),
+            (1, Some(1), Some(0))
+        );
+        assert!(hc.area_kept > 0.97, "{hc:?}");
+        assert_eq!(genus(&p), 0);
+        assert_eq!(r.vertices_out, p.vertices.len());
+        let mut kept = 0;
+        for (i, o) in map.iter().enumerate() {
+            if let Some(o) = o {
+                assert_eq!(p.vertices[*o as usize], m.vertices[i]);
+                kept += 1;
+            }
+        }
+        assert!(kept > m.vertices.len() - 3 * 24, "{kept}");
+        let (p2, r2) = prepare(&m, &popts).unwrap();
+        assert_eq!((p2, r2.handle_cut.map(|h| h.cuts)), (p, Some(1)));
+    }
+}
+
+#[test]
+fn genuine_handles_survive_preparation_with_cutting() {
+    use shapeseek::mesh::prepare::{prepare, PrepareOptions};
+    for opts in [
+        shapeseek::presets::DEFAULT_HANDLE_CUT,
+        HandleCutOptions::default(),
+        HandleCutOptions {
+            max_neck_aspect: 1e9,
+            max_loop_rel: 0.2,
+            ..Default::default()
+        },
+    ] {
+        for (name, m) in [
+            ("torus", torus(3.0, 0.5, 90, 16)),
+            ("mug", mug(0.15, 0.6, 1.8)),
+            ("thick ring", thick_ring(0.22, 0.4)),
+        ] {
+            let plain = prepare(&m, &PrepareOptions::default()).unwrap();
+            let with = prepare(
+                &m,
+                &PrepareOptions {
+                    cut_handles: Some(opts.clone()),
+                    ..PrepareOptions::default()
+                },
+            )
+            .unwrap();
+            assert_eq!(with.0, plain.0, "{name}: mesh changed");
+            let hc = with.1.handle_cut.expect("summary");
+            assert_eq!((hc.cuts, hc.genus_after), (0, Some(1)), "{name}");
+            assert!(plain.1.handle_cut.is_none());
+        }
+    }
+}
+
+#[test]
+fn preparation_options_without_cutting_serialise_as_before() {
+    use shapeseek::mesh::prepare::PrepareOptions;
+    let j = serde_json::to_value(PrepareOptions::default()).unwrap();
+    assert!(j.get("cut_handles").is_none(), "{j}");
+    let o: PrepareOptions = serde_json::from_str(r#"{"cut_handles": {}}"#).unwrap();
+    assert_eq!(o.cut_handles, Some(HandleCutOptions::default()));
+    let bad = PrepareOptions {
+        cut_handles: Some(HandleCutOptions {
+            remove_band: false,
+            ..Default::default()
+        }),
+        ..PrepareOptions::default()
+    };
+    assert!(shapeseek::mesh::prepare::prepare(&torus(2.0, 0.5, 20, 8), &bad).is_err());
+}
+
+/// The product default's rule (`presets::DEFAULT_HANDLE_CUT`: `L/√A ≤ 0.5` and neck aspect
+/// `≤ 3`) keeps every genuine handle, including arms joined into a ring on a body (a thin, long
+/// handle on a sphere: `L/√A` ≈ 0.13, as short as the bench's welds, aspect ≈ 5.4), which a
+/// length-only rule (`free_loop_rel` 0.2) cuts: the test fails for a rule without the neck test.
+#[test]
+fn default_rule_keeps_joined_arms_that_a_length_rule_cuts() {
+    let arms = mug(0.08, 0.6, 1.8);
+    assert_eq!(genus(&arms), 1);
+    let default = shapeseek::presets::DEFAULT_HANDLE_CUT;
+    for (name, m) in [
+        ("torus", torus(3.0, 0.5, 90, 16)),
+        ("mug", mug(0.15, 0.6, 1.8)),
+        ("thick ring", thick_ring(0.22, 0.4)),
+        ("joined arms", arms.clone()),
+    ] {
+        let (out, rep) = cut_handles(&m, &default).unwrap();
+        assert_eq!(rep.cuts, 0, "{name}: {rep:?}");
+        assert_eq!(out, m, "{name}");
+        let l = &rep.loops[0];
+        assert!(
+            l.neck_aspect.unwrap() > default.max_neck_aspect,
+            "{name}: {l:?}"
+        );
+    }
+    let length_only = HandleCutOptions {
+        free_loop_rel: 0.2,
+        ..default
+    };
+    let (_, rep) = cut_handles(&arms, &length_only).unwrap();
+    assert_eq!((rep.cuts, rep.after.genus), (1, Some(0)), "{rep:?}");
+    assert!(rep.loops[0].length_rel < 0.2, "{:?}", rep.loops[0]);
+}

@@ -85,6 +85,9 @@ pub(crate) const ANALYSIS_VERSION: &str = concat!("shapeseek ", env!("CARGO_PKG_
 /// The signatures of one shape (one per union specification), or why it failed.
 pub(super) type ShapeResult = std::result::Result<Vec<Signature>, (String, String)>;
 
+/// The signatures of one shape for every spec. Specs that ask for their own preparation
+/// (handle cutting, [`SignatureSpec::analysis_options`]) are computed on their own analysis
+/// (own cache key); the others share the analysis with `opts`.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn process_shape(
     path: &Path,
@@ -100,7 +103,52 @@ pub(super) fn process_shape(
     let t = Instant::now();
     let bytes = read_limited(path, limits).map_err(fail)?;
     add(&clock.read, t.elapsed());
-    let content = hash_parts(&[&bytes]);
+    // Group the specs by the analysis they need (first occurrence first).
+    let mut groups: Vec<(Vec<u8>, AnalyzeOptions, Vec<usize>)> = Vec::new();
+    for (i, spec) in specs.iter().enumerate() {
+        let (o, j) = if spec.cut_handles.is_none() {
+            (opts.clone(), opts_json.to_vec())
+        } else {
+            let o = spec.analysis_options(opts);
+            let j = serde_json::to_vec(&o).expect("options serialise");
+            (o, j)
+        };
+        match groups.iter_mut().find(|g| g.0 == j) {
+            Some(g) => g.2.push(i),
+            None => groups.push((j, o, vec![i])),
+        }
+    }
+    let mut out: Vec<Option<Signature>> = vec![None; specs.len()];
+    for (j, o, idx) in &groups {
+        let sub_specs: Vec<SignatureSpec> = idx.iter().map(|&i| specs[i].clone()).collect();
+        let sub_keys: Vec<String> = idx.iter().map(|&i| spec_keys[i].clone()).collect();
+        let sigs = process_group(
+            path, &bytes, &sub_specs, &sub_keys, o, j, limits, cache, clock,
+        )?;
+        for (&i, s) in idx.iter().zip(sigs) {
+            out[i] = Some(s);
+        }
+    }
+    Ok(out
+        .into_iter()
+        .map(|s| s.expect("every spec in a group"))
+        .collect())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn process_group(
+    path: &Path,
+    bytes: &[u8],
+    specs: &[SignatureSpec],
+    spec_keys: &[String],
+    opts: &AnalyzeOptions,
+    opts_json: &[u8],
+    limits: &ReadLimits,
+    cache: &Cache,
+    clock: &StageClock,
+) -> ShapeResult {
+    let fail = |e: Error| (e.code().to_string(), e.to_string());
+    let content = hash_parts(&[bytes]);
     let akey = hash_parts(&[content.as_bytes(), opts_json, ANALYSIS_VERSION.as_bytes()]);
     let mut sigs: Vec<Option<Signature>> = Vec::with_capacity(specs.len());
     let t = Instant::now();
@@ -132,7 +180,7 @@ pub(super) fn process_shape(
                 .extension()
                 .and_then(|e| e.to_str())
                 .and_then(Format::from_extension);
-            let mesh = read_mesh(&bytes, hint, limits).map_err(fail)?;
+            let mesh = read_mesh(bytes, hint, limits).map_err(fail)?;
             add(&clock.read, t.elapsed());
             let a = analyze(&mesh, opts).map_err(fail)?;
             add(

@@ -45,15 +45,38 @@ impl Engine {
         format!("framework:{}", self.config.name)
     }
 
-    /// The analysis (preparation + eigenpairs) the signature needs.
+    /// The analysis (preparation + eigenpairs) the signature needs: the engine's options with
+    /// the signature spec's handle cutting ([`crate::signature::SignatureSpec::analysis_options`]).
     pub fn analyze_options(&self) -> AnalyzeOptions {
-        self.analyze.clone()
+        self.config.signature.analysis_options(&self.analyze)
     }
 
     /// A stable key of the signature spec: stored signatures with another key are stale. The
-    /// eigenpair count changes the signature too: part of the key.
+    /// eigenpair count changes the signature too: part of the key; so does handle cutting in
+    /// preparation (`+cut<hash of its options>` before `-k`, absent without it, so keys of
+    /// indexes built without cutting are unchanged). A changed key makes the server recompute
+    /// every stored signature (and payload) from the stored originals at start-up.
     pub fn spec_key(&self) -> String {
-        format!("{}-k{}", self.config.signature.key(), self.analyze.eigen.k)
+        format!(
+            "{}{}-k{}",
+            self.config.signature.key(),
+            self.analysis_tag(),
+            self.analyze.eigen.k
+        )
+    }
+
+    /// The part of the key that comes from the analysis options (handle cutting).
+    fn analysis_tag(&self) -> String {
+        use sha2::{Digest, Sha256};
+        match &self.analyze.prepare.cut_handles {
+            None => String::new(),
+            Some(c) => {
+                let json = serde_json::to_vec(c).expect("options serialise");
+                let d = Sha256::digest(&json);
+                let hex: String = d[..6].iter().map(|b| format!("{b:02x}")).collect();
+                format!("+cut{hex}")
+            }
+        }
     }
 
     /// The signature spec as JSON (for `/v1/index`).
@@ -72,7 +95,12 @@ impl Engine {
     /// The spec key a signature was computed with (the record's spec key, checked at load,
     /// covers the analysis options).
     pub fn signature_spec_key(&self, sig: &Signature) -> String {
-        format!("{}-k{}", sig.spec_key, self.analyze.eigen.k)
+        format!(
+            "{}{}-k{}",
+            sig.spec_key,
+            self.analysis_tag(),
+            self.analyze.eigen.k
+        )
     }
 
     /// Serialises a signature for the `signatures` tree.
@@ -124,5 +152,51 @@ impl Engine {
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::topology::HandleCutOptions;
+
+    #[test]
+    fn handle_cutting_changes_the_spec_key_and_nothing_else_does() {
+        let plain = Engine::new();
+        assert_eq!(
+            plain.spec_key(),
+            format!(
+                "{}-k{}",
+                plain.config.signature.key(),
+                plain.analyze.eigen.k
+            )
+        );
+        let mut cut = Engine::new();
+        cut.analyze.prepare.cut_handles = Some(HandleCutOptions::default());
+        let mut other = Engine::new();
+        other.analyze.prepare.cut_handles = Some(HandleCutOptions {
+            max_loop_rel: 0.2,
+            ..Default::default()
+        });
+        let (a, b, c) = (plain.spec_key(), cut.spec_key(), other.spec_key());
+        assert!(a != b && b != c && a != c, "{a} {b} {c}");
+        // The eigenpair count is still the `-k` suffix (read back by the migrations).
+        assert_eq!(b.rsplit_once("-k").map(|x| x.1), Some("100"));
+    }
+
+    /// An index built by the default before handle cutting (same spec without `cut_handles`)
+    /// has another key, so the server recomputes its signatures from the stored originals; and
+    /// the default's analysis options cut handles.
+    #[test]
+    fn the_default_with_cutting_makes_indexes_built_without_it_stale() {
+        let now = Engine::new();
+        let mut before = Engine::new();
+        before.config.signature.cut_handles = None;
+        assert_ne!(now.spec_key(), before.spec_key());
+        assert_eq!(
+            now.analyze_options().prepare.cut_handles,
+            Some(presets::DEFAULT_HANDLE_CUT)
+        );
+        assert_eq!(before.analyze_options().prepare.cut_handles, None);
     }
 }

@@ -32,6 +32,7 @@
 //! welding, which is expected `O(n)` but quadratic in the size of a cluster of vertices that all
 //! fall into neighbouring grid cells.
 
+use super::topology::{cut_handles_with_map, HandleCutOptions};
 use super::{cross, norm, sub, Mesh};
 use crate::error::DegenerateKind;
 use crate::{Error, Result};
@@ -77,6 +78,15 @@ pub struct PrepareOptions {
     /// components must hold (default `0.5`: the kept part is most of the surface; `0` disables).
     /// Only [`ComponentPolicy::Largest`] can drop area. Must be in `[0, 1]`.
     pub min_area_kept: f64,
+    /// Optional **handle cutting** (topological noise removal, step 5b): short handles that
+    /// qualify as welded bridges under these options are cut by
+    /// [`crate::mesh::topology::cut_handles`] before the spectrum is computed. `None` (default):
+    /// no cutting. Omitted from the JSON when `None`, so the options' serialisation (and every
+    /// cache key derived from it) is unchanged for preparations without it; with it, every key
+    /// changes and signatures are recomputed from the originals. `remove_band` must be `true`
+    /// (welding would otherwise undo a bare split on the next read).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cut_handles: Option<HandleCutOptions>,
 }
 
 impl Default for PrepareOptions {
@@ -89,8 +99,28 @@ impl Default for PrepareOptions {
             min_vertices: 4,
             min_faces: 4,
             min_area_kept: 0.5,
+            cut_handles: None,
         }
     }
+}
+
+/// What the handle-cutting step (5b) of [`prepare`] did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HandleCutSummary {
+    /// Genus of the compacted mesh before cutting (`None`: not an orientable surface).
+    pub genus_before: Option<usize>,
+    /// Genus after cutting (and after the components were selected again).
+    pub genus_after: Option<usize>,
+    /// Handles cut.
+    pub cuts: usize,
+    /// Area after cutting over area before (the removed bands and any detached component).
+    pub area_kept: f64,
+    /// Why the step did not run (a non-manifold edge, genus above 64); the mesh is then prepared
+    /// without cutting.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skipped: Option<String>,
+    /// Time of the step in milliseconds.
+    pub ms: f64,
 }
 
 /// What [`prepare`] did and found. Counts satisfy
@@ -143,6 +173,11 @@ pub struct PrepareReport {
     /// absent when nothing was.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub read_repairs: Vec<String>,
+    /// The handle-cutting step, when [`PrepareOptions::cut_handles`] asks for it. When handles
+    /// were cut, the cleaning counts (`vertices_in` … `dropped_area_fraction`) describe the input
+    /// before cutting and the rest the output; the count identities above then do not hold.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub handle_cut: Option<HandleCutSummary>,
 }
 
 /// Cleans `mesh` (see the [module documentation](crate::mesh::prepare)) and reports what was done.
@@ -373,6 +408,75 @@ pub fn prepare_with_map(
             ),
         });
     }
+    // 5b. Handle cutting (optional): cut, then prepare the cut mesh again (components,
+    // compaction, topology report, normalisation) and compose the maps.
+    let mut handle_cut = None;
+    if let Some(cut) = &opts.cut_handles {
+        let t0 = std::time::Instant::now();
+        let compacted = Mesh::new(vertices, faces);
+        match cut_handles_with_map(&compacted, cut) {
+            Ok((cut_mesh, rep, cut_map)) if rep.cuts > 0 => {
+                let inner = PrepareOptions {
+                    weld_tolerance: None,
+                    cut_handles: None,
+                    ..opts.clone()
+                };
+                let (out, mut r, map2) = prepare_with_map(&cut_mesh, &inner)?;
+                let genus_after = super::topology::surface_stats(&out)
+                    .ok()
+                    .and_then(|s| s.genus);
+                r.handle_cut = Some(HandleCutSummary {
+                    genus_before: rep.before.genus,
+                    genus_after,
+                    cuts: rep.cuts,
+                    area_kept: r.original_area / compacted.area(),
+                    skipped: None,
+                    ms: t0.elapsed().as_secs_f64() * 1e3,
+                });
+                r.vertices_in = n;
+                r.faces_in = mesh.faces.len();
+                r.welded_vertices = welded_vertices;
+                r.degenerate_faces += degenerate_faces;
+                r.duplicate_faces += duplicate_faces;
+                r.component_faces_dropped += component_faces_dropped;
+                r.unreferenced_vertices += clusters - compacted.vertices.len();
+                r.components = components;
+                r.components_kept = components_kept;
+                r.dropped_area_fraction = dropped_area_fraction;
+                r.read_repairs = mesh.repairs.clone();
+                let composed = map
+                    .iter()
+                    .map(|m| {
+                        m.and_then(|a| cut_map[a as usize])
+                            .and_then(|b| map2[b as usize])
+                    })
+                    .collect();
+                return Ok((out, r, composed));
+            }
+            Ok((_, rep, _)) => {
+                handle_cut = Some(HandleCutSummary {
+                    genus_before: rep.before.genus,
+                    genus_after: rep.after.genus,
+                    cuts: 0,
+                    area_kept: 1.0,
+                    skipped: None,
+                    ms: t0.elapsed().as_secs_f64() * 1e3,
+                });
+            }
+            Err(e) => {
+                handle_cut = Some(HandleCutSummary {
+                    genus_before: None,
+                    genus_after: None,
+                    cuts: 0,
+                    area_kept: 1.0,
+                    skipped: Some(e.to_string()),
+                    ms: t0.elapsed().as_secs_f64() * 1e3,
+                });
+            }
+        }
+        (vertices, faces) = (compacted.vertices, compacted.faces);
+    }
+
     // 6. Topology.
     let topo = analyse_edges(vertices.len(), &faces);
 
@@ -422,6 +526,7 @@ pub fn prepare_with_map(
         original_area,
         scale_factor,
         read_repairs: mesh.repairs.clone(),
+        handle_cut,
     };
     Ok((out, report, map))
 }
@@ -445,6 +550,27 @@ fn validate_options(opts: &PrepareOptions) -> Result<()> {
         return Err(Error::InvalidArgument(format!(
             "degenerate_area_ratio must be finite and >= 0, got {r}"
         )));
+    }
+    if let Some(c) = &opts.cut_handles {
+        if !c.remove_band {
+            return Err(Error::InvalidArgument(
+                "cut_handles.remove_band must be true in preparation (a bare split is undone \
+                 by welding when the mesh is read again)"
+                    .into(),
+            ));
+        }
+        let valid = c.growth > 1.0
+            && c.growth.is_finite()
+            && c.max_loop_rel >= 0.0
+            && c.max_neck_aspect >= 0.0
+            && c.free_loop_rel >= 0.0;
+        if !valid {
+            return Err(Error::InvalidArgument(format!(
+                "cut_handles: growth must be > 1 and the thresholds >= 0, got growth {}, \
+                 max_loop_rel {}, max_neck_aspect {}, free_loop_rel {}",
+                c.growth, c.max_loop_rel, c.max_neck_aspect, c.free_loop_rel
+            )));
+        }
     }
     Ok(())
 }
@@ -801,152 +927,5 @@ impl UnionFind {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::mesh::generate;
-
-    fn raw() -> PrepareOptions {
-        PrepareOptions {
-            normalize_area: false,
-            ..PrepareOptions::default()
-        }
-    }
-
-    #[test]
-    fn prepare_options_default_from_empty_json() {
-        let o: PrepareOptions = serde_json::from_str("{}").unwrap();
-        assert_eq!(o, PrepareOptions::default());
-        assert_eq!(o.weld_tolerance, None);
-        assert_eq!(o.components, ComponentPolicy::Largest);
-        assert!(o.normalize_area);
-        assert_eq!(o.degenerate_area_ratio, 1e-14);
-        let o: PrepareOptions = serde_json::from_str(r#"{"components":"all"}"#).unwrap();
-        assert_eq!(o.components, ComponentPolicy::All);
-    }
-
-    #[test]
-    fn prepare_rejects_bad_options() {
-        let m = generate::icosphere(0);
-        for bad in [
-            PrepareOptions {
-                weld_tolerance: Some(-1.0),
-                ..raw()
-            },
-            PrepareOptions {
-                weld_tolerance: Some(f64::NAN),
-                ..raw()
-            },
-            PrepareOptions {
-                degenerate_area_ratio: f64::INFINITY,
-                ..raw()
-            },
-        ] {
-            assert_eq!(prepare(&m, &bad).unwrap_err().code(), "request.invalid");
-        }
-    }
-
-    #[test]
-    fn prepare_weld_exact_treats_negative_zero_as_zero() {
-        let v = vec![[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [0.0, 1.0, 2.0 + 1e-15]];
-        let (c, _) = weld_exact(&v);
-        assert_eq!(c, vec![0, 0, 2]);
-    }
-
-    #[test]
-    fn prepare_weld_tolerance_is_transitive_and_order_free() {
-        // A chain 0 - 1 - 2 with steps below the tolerance, 3 far away.
-        let v = vec![
-            [0.0, 0.0, 0.0],
-            [10.0, 0.0, 0.0],
-            [0.6, 0.0, 0.0],
-            [0.3, 0.0, 0.0],
-        ];
-        // bbox diagonal 10: eps 0.04 → 0.4 absolute.
-        let (c, s) = weld_tolerance(&v, 0.04);
-        assert_eq!(c, vec![0, 1, 0, 0]);
-        assert_eq!(s[0], 0); // lexicographically smallest member
-        let (c, _) = weld_tolerance(&v, 0.02); // 0.2 absolute: nothing merges
-        assert_eq!(c, vec![0, 1, 2, 3]);
-    }
-
-    #[test]
-    fn prepare_weld_tolerance_matches_brute_force() {
-        // Jittered points: many pairs near the tolerance, in every direction across cells.
-        let mut seed = 0x2545_f491_4f6c_dd1du64;
-        let mut rnd = || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
-        for (npts, eps) in [(400, 0.02), (400, 0.05), (300, 0.1), (50, 0.0001)] {
-            let v: Vec<[f64; 3]> = (0..npts)
-                .map(|_| [rnd(), rnd() * 0.5, rnd() * 2.0])
-                .collect();
-            let (c, s) = weld_tolerance(&v, eps);
-            let d = {
-                let (lo, hi) = v.iter().fold(
-                    ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
-                    |(lo, hi), p| {
-                        (
-                            [0, 1, 2].map(|k| lo[k].min(p[k])),
-                            [0, 1, 2].map(|k| hi[k].max(p[k])),
-                        )
-                    },
-                );
-                eps * norm(sub(hi, lo))
-            };
-            let mut uf = UnionFind::new(npts);
-            for i in 0..npts {
-                for j in i + 1..npts {
-                    if norm(sub(v[i], v[j])) <= d {
-                        uf.union(i as u32, j as u32);
-                    }
-                }
-            }
-            let expected: Vec<u32> = (0..npts as u32).map(|i| uf.find(i)).collect();
-            assert_eq!(c, expected, "eps {eps}");
-            let merged = c
-                .iter()
-                .enumerate()
-                .filter(|&(i, &r)| r as usize != i)
-                .count();
-            assert!(
-                eps < 0.001 || merged > 20,
-                "eps {eps}: only {merged} merged"
-            );
-            for (i, &r) in c.iter().enumerate() {
-                assert!(!lex_less(v[i], v[s[r as usize] as usize]));
-            }
-        }
-    }
-
-    #[test]
-    fn prepare_loops_of_a_bowtie_boundary() {
-        // Two triangles sharing only vertex 0: one boundary per triangle around the pinch.
-        let e = [(0, 1), (1, 2), (2, 0), (0, 3), (3, 4), (4, 0)];
-        assert_eq!(count_boundary_loops(5, &e), 2);
-        // Theta graph (two vertices joined by three paths): one cycle and one open chain.
-        let e = [(0, 2), (2, 1), (0, 3), (3, 1), (0, 4), (4, 1)];
-        assert_eq!(count_boundary_loops(5, &e), 2);
-        assert_eq!(count_boundary_loops(3, &[]), 0);
-    }
-
-    #[test]
-    fn prepare_edge_statistics_of_a_rectangle() {
-        let r = generate::rectangle(1.0, 1.0, 3, 2);
-        let t = analyse_edges(r.vertices.len(), &r.faces);
-        assert_eq!(t.boundary_edges, 2 * (3 + 2));
-        assert_eq!(t.boundary_loops, 1);
-        assert_eq!(t.nonmanifold_edges, 0);
-        assert_eq!(t.inconsistent, 0);
-        // V - E + F = 1 for a disc.
-        assert_eq!(12 - t.edges as i64 + 12, 1);
-    }
-
-    #[test]
-    fn prepare_duplicate_faces_any_orientation() {
-        let f = [[0, 1, 2], [2, 1, 0], [1, 2, 0], [0, 1, 3]];
-        assert_eq!(duplicate_faces(4, &f), vec![false, true, true, false]);
-    }
-}
+#[path = "prepare_tests.rs"]
+mod tests;

@@ -1,7 +1,9 @@
 //! What to compute for a shape: channels (kernel × norm × scale, scale aggregates, baselines),
 //! the pair quadrature and the sketch resolution, with their validation and stable names/keys.
 
+use crate::mesh::topology::HandleCutOptions;
 use crate::scale::SpectrumScaling;
+use crate::spectrum::AnalyzeOptions;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -387,6 +389,13 @@ pub struct SignatureSpec {
     /// ([`crate::scale`]); omitted from the JSON (and key) when `None`.
     #[serde(default, skip_serializing_if = "SpectrumScaling::is_none")]
     pub spectrum_scaling: SpectrumScaling,
+    /// Handle cutting before the spectrum (topological noise removal,
+    /// [`crate::mesh::topology::cut_handles`]): the signature is computed on the shape with its
+    /// short welded handles cut. It is a preparation step, applied by whoever analyses the shape
+    /// for this spec ([`SignatureSpec::analysis_options`]: eval, the server); the signature code
+    /// itself reads the analysis it is given. Omitted from the JSON (and key) when `None`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cut_handles: Option<HandleCutOptions>,
 }
 
 impl Default for SignatureSpec {
@@ -402,6 +411,7 @@ impl Default for SignatureSpec {
             geodesic_sources: 200,
             sketch_quantiles: 1024,
             spectrum_scaling: SpectrumScaling::None,
+            cut_handles: None,
         }
     }
 }
@@ -420,6 +430,16 @@ impl SignatureSpec {
         let json = serde_json::to_string(self).unwrap_or_default();
         let digest = Sha256::digest(json.as_bytes());
         hex::encode(&digest[..12])
+    }
+
+    /// The analysis options a shape must be analysed with for this spec: `base` with this
+    /// spec's handle cutting, when it has one (otherwise `base` unchanged).
+    pub fn analysis_options(&self, base: &AnalyzeOptions) -> AnalyzeOptions {
+        let mut o = base.clone();
+        if let Some(c) = &self.cut_handles {
+            o.prepare.cut_handles = Some(c.clone());
+        }
+        o
     }
 
     /// Channel names, in order.

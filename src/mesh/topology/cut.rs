@@ -149,8 +149,9 @@ fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> 
     Some((s / length, across / length))
 }
 
-/// Drops faces touching any of `verts` and compacts unused vertices.
-fn remove_band(mesh: &Mesh, verts: &[u32]) -> Mesh {
+/// Drops faces touching any of `verts` and compacts unused vertices; also returns, per vertex of
+/// `mesh`, its index in the result (`NONE` when dropped).
+fn remove_band(mesh: &Mesh, verts: &[u32]) -> (Mesh, Vec<u32>) {
     let bad: std::collections::HashSet<u32> = verts.iter().copied().collect();
     let faces: Vec<[u32; 3]> = mesh
         .faces
@@ -161,7 +162,7 @@ fn remove_band(mesh: &Mesh, verts: &[u32]) -> Mesh {
     compact(&mesh.vertices, faces)
 }
 
-fn compact(vertices: &[[f64; 3]], faces: Vec<[u32; 3]>) -> Mesh {
+fn compact(vertices: &[[f64; 3]], faces: Vec<[u32; 3]>) -> (Mesh, Vec<u32>) {
     let mut map = vec![NONE; vertices.len()];
     let mut verts = Vec::new();
     for f in &faces {
@@ -181,7 +182,7 @@ fn compact(vertices: &[[f64; 3]], faces: Vec<[u32; 3]>) -> Mesh {
         .into_iter()
         .map(|f| f.map(|v| map[v as usize]))
         .collect();
-    Mesh::new(verts, faces)
+    (Mesh::new(verts, faces), map)
 }
 
 /// Finds handles that are short welded necks and cuts them (module docs). The returned mesh has
@@ -195,13 +196,27 @@ pub fn cut_handles(
     mesh: &Mesh,
     opts: &HandleCutOptions,
 ) -> Result<(Mesh, HandleCutReport), TopologyError> {
+    cut_handles_with_map(mesh, opts).map(|(m, r, _)| (m, r))
+}
+
+/// [`cut_handles`], also returning for each vertex of `mesh` its index in the output (`None`
+/// when it was removed with a band). The copies a cut makes are new vertices: an input vertex on
+/// a cut loop maps to its "plus" side copy (the original index), or to `None` when the band was
+/// removed.
+///
+/// # Errors
+/// As [`cut_handles`].
+pub fn cut_handles_with_map(
+    mesh: &Mesh,
+    opts: &HandleCutOptions,
+) -> Result<(Mesh, HandleCutReport, Vec<Option<u32>>), TopologyError> {
     if !(opts.growth > 1.0 && opts.growth.is_finite()) {
         return Err(TopologyError::InvalidOption(format!(
             "growth must be > 1, got {}",
             opts.growth
         )));
     }
-    if !(opts.max_loop_rel >= 0.0 && opts.max_neck_aspect >= 0.0) {
+    if !(opts.max_loop_rel >= 0.0 && opts.max_neck_aspect >= 0.0 && opts.free_loop_rel >= 0.0) {
         return Err(TopologyError::InvalidOption(
             "thresholds must be ≥ 0".into(),
         ));
@@ -210,6 +225,8 @@ pub fn cut_handles(
     let before = stats_of(mesh, &t0);
     let area0 = mesh.area();
     let mut cur = mesh.clone();
+    // Input vertex → index in `cur` (a split only appends vertices; a band removal compacts).
+    let mut map: Vec<u32> = (0..mesh.vertices.len() as u32).collect();
     let mut t = t0;
     let mut loops = Vec::new();
     let mut cuts = 0;
@@ -242,7 +259,7 @@ pub fn cut_handles(
                 {
                     rep.neck_aspect = Some(aspect);
                     rep.handle_rel = Some(across);
-                    if aspect <= opts.max_neck_aspect {
+                    if aspect <= opts.max_neck_aspect || rel <= opts.free_loop_rel {
                         rep.cut = true;
                         let mut band = lp.vertices.clone();
                         band.extend(&minus);
@@ -257,7 +274,13 @@ pub fn cut_handles(
         }
         let Some((sp, band)) = next else { break };
         cur = if opts.remove_band {
-            remove_band(&sp, &band)
+            let (m, step) = remove_band(&sp, &band);
+            for v in &mut map {
+                if *v != NONE {
+                    *v = step[*v as usize];
+                }
+            }
+            m
         } else {
             sp
         };
@@ -269,6 +292,7 @@ pub fn cut_handles(
     }
     let after = stats_of(&cur, &t);
     let area_kept = if area0 > 0.0 { cur.area() / area0 } else { 1.0 };
+    let map = map.into_iter().map(|v| (v != NONE).then_some(v)).collect();
     Ok((
         cur,
         HandleCutReport {
@@ -278,5 +302,6 @@ pub fn cut_handles(
             cuts,
             area_kept,
         },
+        map,
     ))
 }

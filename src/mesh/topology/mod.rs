@@ -50,8 +50,9 @@
 //! where on each side of the cut `s±` is the geodesic distance from `γ` at which the area swept
 //! since `γ` first exceeds `growth · L · s` (a tube keeps area `≈ L · s`; a surface that flares
 //! exceeds it), or the whole side when it never does (a ring). A loop is cut when
-//! `L / √A ≤ max_loop_rel` and `aspect ≤ max_neck_aspect`; both thresholds are options (their
-//! defaults and how they were chosen are in `docs/quality.md`, "Handle cutting").
+//! `L / √A ≤ max_loop_rel` and `aspect ≤ max_neck_aspect`, or when `L / √A ≤ free_loop_rel`
+//! whatever its aspect; the thresholds are options (their defaults and how they were chosen are
+//! in `docs/quality.md`, "Handle cutting").
 //!
 //! Everything is deterministic (no randomness; ties broken by indices). Requires a manifold mesh
 //! (every edge in at most two faces): [`TopologyError::NonManifoldEdge`] otherwise. A loop through
@@ -131,8 +132,13 @@ pub struct HomologyLoop {
 pub struct HandleCutOptions {
     /// A loop qualifies only when `length / sqrt(area) ≤ max_loop_rel`.
     pub max_loop_rel: f64,
-    /// A loop qualifies only when its neck aspect (module docs) is `≤ max_neck_aspect`.
+    /// A loop qualifies only when its neck aspect (module docs) is `≤ max_neck_aspect`, unless
+    /// it is shorter than `free_loop_rel`.
     pub max_neck_aspect: f64,
+    /// A loop with `length / sqrt(area) ≤ free_loop_rel` qualifies whatever its neck aspect
+    /// (default 0: none). Two tiers: loops this short are cut as welds, longer ones up to
+    /// `max_loop_rel` only when they are also short necks (`docs/quality.md` §9 for the values).
+    pub free_loop_rel: f64,
     /// Area growth factor that ends a neck (module docs); `> 1`.
     pub growth: f64,
     /// Farthest-point roots of the first basis (≥ 1).
@@ -152,6 +158,7 @@ impl Default for HandleCutOptions {
         Self {
             max_loop_rel: 0.5,
             max_neck_aspect: 1.5,
+            free_loop_rel: 0.0,
             growth: 2.0,
             roots: 8,
             refine_roots: 3,
@@ -466,7 +473,7 @@ pub fn surface_stats(mesh: &Mesh) -> Result<SurfaceStats, TopologyError> {
 mod cut;
 mod homology;
 
-pub use cut::cut_handles;
+pub use cut::{cut_handles, cut_handles_with_map};
 pub use homology::short_homology_basis;
 
 #[cfg(test)]
