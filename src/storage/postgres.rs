@@ -125,7 +125,8 @@ impl PgStore {
         Ok(store)
     }
 
-    async fn client(&self) -> Result<Object> {
+    /// A pooled connection (the queue's job table shares the pool).
+    pub(crate) async fn client(&self) -> Result<Object> {
         self.pool
             .get()
             .await
@@ -222,7 +223,7 @@ impl LockHolder for PgLock {
         let stmt = c
             .prepare_cached(
                 "UPDATE calibration SET epoch = $1, calibrated_on = $2, body = $3::text::json, \
-                 updated_at = now() WHERE singleton AND epoch = $4",
+                 updated_at = now() WHERE singleton AND epoch < $1",
             )
             .await
             .map_err(pg("preparing"))?;
@@ -230,12 +231,7 @@ impl LockHolder for PgLock {
         let n = c
             .execute(
                 &stmt,
-                &[
-                    &epoch,
-                    &to_i64(cal.calibrated_on, "calibrated_on")?,
-                    &body,
-                    &(epoch - 1),
-                ],
+                &[&epoch, &to_i64(cal.calibrated_on, "calibrated_on")?, &body],
             )
             .await
             .map_err(pg("writing the calibration"))?;
