@@ -150,6 +150,10 @@ pub enum Error {
     /// an index this build cannot use as it is (another version, another program's data).
     #[error("storage: {0}")]
     Storage(String),
+    /// The work queue or change feed (NATS JetStream) could not be reached or refused a
+    /// message; the request may be retried.
+    #[error("queue: {0}")]
+    Queue(String),
     /// Stored data could not be decoded: a signature, payload, record or file whose bytes are
     /// not what was written.
     #[error("corrupt {what}{}: {detail}", id.as_ref().map(|i| format!(" of {i}")).unwrap_or_default())]
@@ -189,6 +193,7 @@ impl Error {
             Error::InvalidArgument(_) => "request.invalid",
             Error::Io(_) => "io",
             Error::Storage(_) => "storage",
+            Error::Queue(_) => "queue.unavailable",
             Error::Corrupt { .. } => "storage.corrupt",
         }
     }

@@ -15,6 +15,7 @@ pub mod index;
 pub mod laplace;
 pub mod mesh;
 pub mod presets;
+pub mod queue;
 pub mod ranking;
 pub mod rerank;
 pub mod scale;
@@ -23,5 +24,6 @@ pub mod server;
 pub mod signature;
 pub mod spectrum;
 pub mod storage;
+pub mod worker;
 
 pub use error::{Error, Result};

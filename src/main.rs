@@ -33,6 +33,9 @@ enum Command {
     Spectrum(SpectrumArgs),
     /// Run the REST service on an embedded index (default ./shapeseek-data, 127.0.0.1:8080).
     Serve(shapeseek::server::ServeArgs),
+    /// Analyse uploads queued by serving nodes (`serve --store postgres://… --queue nats://…`):
+    /// pull jobs from the JetStream work queue, store the shapes in PostgreSQL.
+    Worker(cli::worker::WorkerArgs),
     /// Add mesh files, folders or CSV manifests to an index (via a server, or a data directory).
     Ingest(cli::ingest::IngestArgs),
     /// Find the shapes most similar to a mesh file or a stored shape (asks a running server).
@@ -268,7 +271,7 @@ fn run_spectrum(args: &SpectrumArgs) -> Result<(), CliError> {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     // `serve` sets up its own (text or JSON) structured logging from its configuration.
-    if !matches!(cli.command, Command::Serve(_)) {
+    if !matches!(cli.command, Command::Serve(_) | Command::Worker(_)) {
         // Collection commands print their own progress and summary: warnings only by default.
         let default = match cli.command {
             Command::Ingest(_) | Command::Search(_) => "warn",
@@ -285,6 +288,7 @@ fn main() -> ExitCode {
     let result: Result<(), CliError> = match &cli.command {
         Command::Spectrum(a) => run_spectrum(a),
         Command::Serve(a) => run_serve(a),
+        Command::Worker(a) => cli::worker::run(a),
         Command::Ingest(a) => match cli::ingest::run(a) {
             Ok(true) => Ok(()),
             // The failures are listed; the status says some inputs were not ingested.
@@ -316,7 +320,9 @@ fn main() -> ExitCode {
 
 fn run_serve(a: &shapeseek::server::ServeArgs) -> Result<(), CliError> {
     let cfg = a.to_config()?;
-    cli::datadir::ensure_writable(&cfg.data)?;
+    if cfg.store_url().is_none() {
+        cli::datadir::ensure_writable(&cfg.data)?;
+    }
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -326,6 +332,10 @@ fn run_serve(a: &shapeseek::server::ServeArgs) -> Result<(), CliError> {
 }
 
 fn run_migrate(a: &shapeseek::server::MigrateArgs) -> Result<(), CliError> {
+    if a.store_url().is_some() {
+        println!("{}", a.run()?);
+        return Ok(());
+    }
     let dir = a.data_dir();
     // A missing or foreign directory is refused by the runner itself, untouched.
     if dir.join("db").is_dir() {

@@ -839,15 +839,14 @@ async fn postgres_schema_versions_are_checked_and_migrations_applied_once() {
     let again = migrate_url(&url).await.unwrap();
     assert!(again.applied.is_empty(), "a second run applies nothing");
 
-    // Two runners at once with a second migration: each file applied once.
-    let extra = [
-        pg_migrate::MIGRATIONS[0],
-        pg_migrate::Migration {
-            version: 2,
-            name: "0002_test.sql",
-            sql: "CREATE TABLE test_extra (x int); INSERT INTO test_extra VALUES (1);",
-        },
-    ];
+    // Two runners at once with one more migration than this build has: applied once.
+    let next = PG_SCHEMA_VERSION + 1;
+    let mut extra = pg_migrate::MIGRATIONS.to_vec();
+    extra.push(pg_migrate::Migration {
+        version: next,
+        name: "9999_test.sql",
+        sql: "CREATE TABLE test_extra (x int); INSERT INTO test_extra VALUES (1);",
+    });
     let runs = futures_join(&url, &extra).await;
     assert_eq!(
         runs.iter().map(|r| r.applied.len()).sum::<usize>(),
@@ -861,7 +860,7 @@ async fn postgres_schema_versions_are_checked_and_migrations_applied_once() {
         .unwrap()
         .get(0);
     assert_eq!(n, 1);
-    // This build (version 1) now refuses the database written by "a newer build" (version 2).
+    // This build now refuses the database written by "a newer build".
     assert_newer_refusal(
         PgStore::connect(&url, PoolOptions::default())
             .await
@@ -872,26 +871,26 @@ async fn postgres_schema_versions_are_checked_and_migrations_applied_once() {
         Ok(_) => panic!("a newer schema must be refused"),
         Err(e) => e,
     });
-    // A build that knows version 2 opens it.
-    PgStore::connect_expecting(&url, PoolOptions::default(), 2)
+    // A build that knows the next version opens it.
+    PgStore::connect_expecting(&url, PoolOptions::default(), next)
         .await
-        .expect("version 2 build opens it");
+        .expect("a newer build opens it");
 
     // A failing migration rolls back whole and leaves the version where it was.
-    let broken = [
-        extra[0],
-        extra[1],
-        pg_migrate::Migration {
-            version: 3,
-            name: "0003_broken.sql",
-            sql: "CREATE TABLE half_done (x int); SELECT no_such_function();",
-        },
-    ];
+    let mut broken = extra.clone();
+    broken.push(pg_migrate::Migration {
+        version: next + 1,
+        name: "9999_broken.sql",
+        sql: "CREATE TABLE half_done (x int); SELECT no_such_function();",
+    });
     let mut client = raw_client(&url).await;
     assert!(pg_migrate::migrate_with(&mut client, &broken)
         .await
         .is_err());
-    assert_eq!(pg_migrate::current_version(&client).await.unwrap(), Some(2));
+    assert_eq!(
+        pg_migrate::current_version(&client).await.unwrap(),
+        Some(next)
+    );
     let half: bool = client
         .query_one("SELECT to_regclass('half_done') IS NOT NULL", &[])
         .await

@@ -598,7 +598,14 @@ mod local {
                 .worker_threads(2)
                 .enable_all()
                 .build()?;
-            let app = Arc::new(App::load(cfg, shapeseek::index::default_engine())?);
+            let store = rt.block_on(shapeseek::storage::open_dir(dir.to_path_buf()))?;
+            let handle = rt.handle().clone();
+            let app = Arc::new(App::load(
+                cfg,
+                shapeseek::index::default_engine(),
+                store,
+                handle,
+            )?);
             Ok(Local { app, rt })
         }
 
@@ -631,7 +638,7 @@ mod local {
     impl Drop for Local {
         fn drop(&mut self) {
             // Everything acknowledged was flushed; this also persists the calibration state.
-            let _ = self.app.store.flush();
+            let _ = self.rt.block_on(self.app.store.flush());
         }
     }
 }

@@ -7,6 +7,7 @@ pub mod eval;
 mod http;
 pub mod ingest;
 pub mod search;
+pub mod worker;
 
 use std::fmt;
 use std::path::Path;
@@ -55,7 +56,10 @@ impl fmt::Display for CliError {
 
 impl From<shapeseek::Error> for CliError {
     fn from(e: shapeseek::Error) -> Self {
-        let exit = if matches!(e, shapeseek::Error::Io(_) | shapeseek::Error::Storage(_)) {
+        let exit = if matches!(
+            e,
+            shapeseek::Error::Io(_) | shapeseek::Error::Storage(_) | shapeseek::Error::Queue(_)
+        ) {
             74
         } else {
             65

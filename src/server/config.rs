@@ -10,8 +10,23 @@ use std::path::PathBuf;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ServerConfig {
-    /// Data directory (the sled index lives in `<data>/db`).
+    /// Data directory (the sled index lives in `<data>/db`); used when `store` is empty.
     pub data: PathBuf,
+    /// A PostgreSQL URL (`postgres://…`) to keep the shapes in instead of the sled index in
+    /// `data` (empty: the sled index). The database must be migrated (`shapeseek migrate
+    /// --store URL`).
+    pub store: String,
+    /// A NATS URL (`nats://HOST:PORT`, JetStream enabled): uploads become jobs of the work
+    /// queue, analysed by `shapeseek worker`s, and the scan follows the change feed. Needs a
+    /// PostgreSQL `store`. Empty: ingest in this process.
+    pub queue: String,
+    /// Seconds a worker may hold a job without an ack or an "in progress" before JetStream
+    /// redelivers it (the queue's consumer is created with it by the first node or worker).
+    pub queue_ack_wait_secs: f64,
+    /// Deliveries of a job before it becomes a dead letter.
+    pub queue_max_deliver: u32,
+    /// Seconds between two reconciliations of a cluster node's scan with the store.
+    pub reconcile_secs: f64,
     /// Listen address `HOST:PORT` (port 0 picks a free one).
     pub addr: String,
     /// Largest accepted request body, bytes.
@@ -75,6 +90,11 @@ impl Default for ServerConfig {
     fn default() -> Self {
         Self {
             data: PathBuf::from("./shapeseek-data"),
+            store: String::new(),
+            queue: String::new(),
+            queue_ack_wait_secs: 30.0,
+            queue_max_deliver: 5,
+            reconcile_secs: 5.0,
             addr: "127.0.0.1:8080".into(),
             max_body_bytes: 64 << 20,
             max_vertices: 500_000,
@@ -215,7 +235,47 @@ impl ServerConfig {
         if self.log_format != "text" && self.log_format != "json" {
             return bad("log_format must be \"text\" or \"json\"");
         }
+        if !self.queue.is_empty() {
+            if !crate::queue::is_nats_url(&self.queue) {
+                return bad("queue must be a nats:// URL (or empty)");
+            }
+            if self.store.is_empty() {
+                return bad("queue needs a PostgreSQL store (--store postgres://…)");
+            }
+        }
+        for (name, v) in [
+            ("queue_ack_wait_secs", self.queue_ack_wait_secs),
+            ("reconcile_secs", self.reconcile_secs),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
+                return bad(&format!("{name} must be in (0, 86400]"));
+            }
+        }
+        if self.queue_max_deliver == 0 {
+            return bad("queue_max_deliver must be > 0");
+        }
+        if !self.store.is_empty() && !crate::storage::is_postgres_url(&self.store) {
+            return bad("store must be a postgres:// or postgresql:// URL (or empty: the sled index in `data`)");
+        }
         Ok(())
+    }
+
+    /// The PostgreSQL URL of `store`, `None` for the sled index in `data`.
+    pub fn store_url(&self) -> Option<&str> {
+        (!self.store.is_empty()).then_some(self.store.as_str())
+    }
+
+    /// The NATS URL of `queue`, `None` without a queue.
+    pub fn queue_url(&self) -> Option<&str> {
+        (!self.queue.is_empty()).then_some(self.queue.as_str())
+    }
+
+    /// The work-queue settings.
+    pub fn queue_options(&self) -> crate::queue::QueueOptions {
+        crate::queue::QueueOptions {
+            ack_wait: std::time::Duration::from_secs_f64(self.queue_ack_wait_secs),
+            max_deliver: i64::from(self.queue_max_deliver),
+        }
     }
 
     /// Worker count with 0 resolved to the number of cores.
@@ -236,6 +296,14 @@ pub struct ServeArgs {
     /// Data directory [default: ./shapeseek-data; env SHAPESEEK_DATA]
     #[arg(long)]
     pub data: Option<PathBuf>,
+    /// Keep the shapes in this PostgreSQL database (`postgres://…`) instead of the sled index in
+    /// the data directory [env SHAPESEEK_STORE]
+    #[arg(long)]
+    pub store: Option<String>,
+    /// Hand the analysis of uploads to `shapeseek worker`s through this NATS JetStream server
+    /// (`nats://HOST:PORT`; needs --store) [env SHAPESEEK_QUEUE]
+    #[arg(long)]
+    pub queue: Option<String>,
     /// Listen address HOST:PORT [default: 127.0.0.1:8080; env SHAPESEEK_ADDR]
     #[arg(long)]
     pub addr: Option<String>,
@@ -265,6 +333,12 @@ impl ServeArgs {
         if let Some(a) = &self.addr {
             cfg.addr = a.clone();
         }
+        if let Some(s) = &self.store {
+            cfg.store = s.clone();
+        }
+        if let Some(q) = &self.queue {
+            cfg.queue = q.clone();
+        }
         if let Some(w) = self.workers {
             cfg.workers = w;
         }
@@ -280,8 +354,12 @@ impl ServeArgs {
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct MigrateArgs {
     /// Data directory [default: ./shapeseek-data; env SHAPESEEK_DATA]
-    #[arg(long)]
+    #[arg(long, conflicts_with = "store")]
     pub data: Option<PathBuf>,
+    /// Apply the SQL migrations (`migrations/postgres/`) to this PostgreSQL database instead
+    /// [env SHAPESEEK_STORE]
+    #[arg(long)]
+    pub store: Option<String>,
 }
 
 impl MigrateArgs {
@@ -293,8 +371,23 @@ impl MigrateArgs {
             .unwrap_or_else(|| ServerConfig::default().data)
     }
 
+    /// The PostgreSQL URL to migrate (`--store`, else `SHAPESEEK_STORE` when `--data` is not
+    /// given), `None` for a sled data directory.
+    pub fn store_url(&self) -> Option<String> {
+        self.store.clone().or_else(|| {
+            self.data
+                .is_none()
+                .then(|| std::env::var("SHAPESEEK_STORE").ok())
+                .flatten()
+                .filter(|s| !s.is_empty())
+        })
+    }
+
     /// Runs the migration and returns a line for the user.
     pub fn run(&self) -> Result<String> {
+        if let Some(url) = self.store_url() {
+            return migrate_postgres(&url);
+        }
         let dir = self.data_dir();
         Ok(match crate::index::migrate(&dir)? {
             crate::index::MigrateOutcome::UpToDate(v) => {
@@ -310,4 +403,28 @@ impl MigrateArgs {
             ),
         })
     }
+}
+
+/// `shapeseek migrate --store postgres://…`: applies the missing SQL migrations (refusing a
+/// database whose schema is newer than this build's).
+fn migrate_postgres(url: &str) -> Result<String> {
+    if !crate::storage::is_postgres_url(url) {
+        return Err(Error::InvalidArgument(format!(
+            "--store {url:?}: expected a postgres:// or postgresql:// URL"
+        )));
+    }
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    let r = rt.block_on(crate::storage::postgres::migrate_url(url))?;
+    Ok(if r.applied.is_empty() {
+        format!("database is up to date (schema version {})", r.to)
+    } else {
+        format!(
+            "migrated database from schema version {} to {} ({})",
+            r.from,
+            r.to,
+            r.applied.join(", ")
+        )
+    })
 }

@@ -1,5 +1,6 @@
 //! HTTP handlers: translate requests to [`App`] calls and results to JSON.
 
+use super::cluster::Queued;
 use super::problem::ApiError;
 use super::state::{validate_tags, App, SearchOptions, Upload};
 use crate::mesh::read::Format;
@@ -23,6 +24,9 @@ pub struct IngestParams {
     pub name: Option<String>,
     /// Comma-separated tags.
     pub tags: Option<String>,
+    /// `false`: with a work queue, answer 202 with the job once it is queued instead of waiting
+    /// for the shape (without a queue the shape is stored before the answer either way).
+    pub wait: Option<bool>,
 }
 
 /// Query parameters of a raw `POST /v1/search`.
@@ -211,7 +215,17 @@ pub async fn ingest(
     };
     check_name(&up.name)?;
     validate_tags(&up.tags)?;
-    let res = app.ingest_until(up, deadline).await?;
+    let res = if app.cluster().is_some() {
+        match app
+            .queued_ingest(up, params.wait.unwrap_or(true), deadline)
+            .await?
+        {
+            Queued::Stored(r) => *r,
+            Queued::Accepted(job) => return Ok(job_response(StatusCode::ACCEPTED, job)),
+        }
+    } else {
+        app.ingest_until(up, deadline).await?
+    };
     let status = if res.created {
         StatusCode::CREATED
     } else {
@@ -223,6 +237,38 @@ pub async fn ingest(
         resp.headers_mut().insert(header::LOCATION, v);
     }
     Ok(resp)
+}
+
+/// A job as JSON with its `Location` (`/v1/jobs/{id}`).
+fn job_response(status: StatusCode, job: crate::queue::Job) -> Response {
+    let location = format!("/v1/jobs/{}", job.id);
+    let mut body = serde_json::to_value(&job).unwrap_or_default();
+    if let serde_json::Value::Object(m) = &mut body {
+        m.insert("link".into(), serde_json::Value::String(location.clone()));
+    }
+    let mut resp = (status, Json(body)).into_response();
+    if let Ok(v) = HeaderValue::from_str(&location) {
+        resp.headers_mut().insert(header::LOCATION, v);
+    }
+    resp
+}
+
+/// `GET /v1/jobs/{id}`: an ingest job of the work queue (404 without a queue).
+pub async fn get_job(State(app): AppState, Path(id): Path<String>) -> Result<Response, ApiError> {
+    let not_found = || {
+        ApiError::new(
+            StatusCode::NOT_FOUND,
+            "job.not_found",
+            format!("no job with id {id:?}"),
+        )
+    };
+    let Some(cl) = app.cluster() else {
+        return Err(not_found());
+    };
+    match cl.jobs.get(&id).await? {
+        Some(job) => Ok(job_response(StatusCode::OK, job)),
+        None => Err(not_found()),
+    }
 }
 
 /// Query parameters of `GET /v1/shapes`.
@@ -242,14 +288,12 @@ pub async fn list(State(app): AppState, Query(p): Query<ListParams>) -> Result<R
     if !(1..=1000).contains(&limit) {
         return Err(ApiError::invalid("limit must be in 1..=1000"));
     }
-    let app2 = app.clone();
-    let (items, more) = tokio::task::spawn_blocking(move || {
-        app2.store
-            .list(p.cursor.as_deref(), p.tag.as_deref(), limit)
-    })
-    .await
-    .map_err(ApiError::internal)?
-    .map_err(ApiError::internal)?;
+    let page = app
+        .store
+        .list(p.cursor.as_deref(), p.tag.as_deref(), limit)
+        .await
+        .map_err(ApiError::from)?;
+    let (items, more) = (page.records, page.more);
     let next = if more {
         items.last().map(|r| r.id.clone())
     } else {
@@ -260,7 +304,7 @@ pub async fn list(State(app): AppState, Query(p): Query<ListParams>) -> Result<R
 
 /// `GET /v1/shapes/{id}`.
 pub async fn get_shape(State(app): AppState, Path(id): Path<String>) -> Result<Response, ApiError> {
-    match app.store.get(&id).map_err(ApiError::internal)? {
+    match app.store.get(&id).await.map_err(ApiError::internal)? {
         Some(rec) => Ok(Json(rec).into_response()),
         None => Err(ApiError::not_found(&id)),
     }
@@ -283,11 +327,13 @@ pub async fn get_mesh(State(app): AppState, Path(id): Path<String>) -> Result<Re
     let rec = app
         .store
         .get(&id)
+        .await
         .map_err(ApiError::internal)?
         .ok_or_else(|| ApiError::not_found(&id))?;
     let bytes = app
         .store
         .mesh(&id)
+        .await
         .map_err(ApiError::internal)?
         .ok_or_else(|| ApiError::not_found(&id))?;
     // Always octet-stream (the record's `format`/`content_type` name the format): a format type
@@ -315,6 +361,7 @@ pub async fn get_signature(
     let bytes = app
         .store
         .signature(&id)
+        .await
         .map_err(ApiError::internal)?
         .ok_or_else(|| ApiError::not_found(&id))?;
     let sig = app
@@ -422,12 +469,12 @@ pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
         "shapes": n,
         "calibration_epoch": epoch,
         "calibrated_on": on,
-        "schema_version": crate::index::SCHEMA_VERSION,
+        "schema_version": app.store.schema_version().await.map_err(ApiError::internal)?,
         "engine": app.engine.name(),
         "spec_key": app.engine.spec_key(),
         "signature_spec": app.engine.spec_json(),
         "default_query": serde_json::to_value(app.engine.default_query()).map_err(ApiError::internal)?,
-        "size_on_disk": app.store.size_on_disk(),
+        "size_on_disk": app.store.size_on_disk().await.map_err(ApiError::internal)?,
         "queue": queue_stats(&app),
     }))
     .into_response())
@@ -466,7 +513,8 @@ pub async fn healthz() -> Response {
 /// `GET /readyz`: loaded and not shutting down.
 pub async fn readyz(State(app): AppState) -> Result<Response, ApiError> {
     if app.ready.load(Ordering::Acquire) {
-        Ok(Json(serde_json::json!({"status": "ready", "shapes": app.store.len()})).into_response())
+        let shapes = app.store.count().await.map_err(ApiError::internal)?;
+        Ok(Json(serde_json::json!({"status": "ready", "shapes": shapes})).into_response())
     } else {
         Err(ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,

@@ -25,12 +25,16 @@
 //! TOML file < `SHAPESEEK_*` environment < flags).
 
 pub mod admission;
+mod calibrate;
+pub mod cluster;
 pub mod config;
 pub mod conn;
 pub mod env;
 pub mod handlers;
 pub mod limits;
+mod load;
 pub mod metrics;
+pub mod prepared;
 pub mod problem;
 pub mod router;
 pub mod state;

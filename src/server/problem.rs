@@ -125,6 +125,7 @@ impl ApiError {
             | E::Inconsistent { .. }
             | E::Degenerate { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             E::InvalidArgument(_) => StatusCode::BAD_REQUEST,
+            E::Queue(_) => StatusCode::SERVICE_UNAVAILABLE,
             E::Io(_) | E::Storage(_) | E::Corrupt { .. } => return None,
         };
         Some((status, e.code()))

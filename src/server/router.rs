@@ -28,6 +28,7 @@ pub fn router(app: Arc<App>) -> Router {
     let v1 = Router::new()
         .route("/v1/shapes", post(h::ingest).get(h::list))
         .route("/v1/shapes/{id}", get(h::get_shape).delete(h::delete_shape))
+        .route("/v1/jobs/{id}", get(h::get_job))
         .route("/v1/shapes/{id}/mesh", get(h::get_mesh))
         .route("/v1/shapes/{id}/signature", get(h::get_signature))
         .route("/v1/search", post(h::search))
@@ -208,15 +209,15 @@ async fn metrics_mw(req: Request, next: Next) -> Response {
 /// Lifecycle hooks of a running app, independent of its engine type.
 trait Lifecycle: Send + Sync {
     fn set_ready(&self, ready: bool);
-    fn flush(&self) -> Result<()>;
+    fn store(&self) -> Arc<dyn crate::storage::ShapeStore>;
 }
 
 impl Lifecycle for App {
     fn set_ready(&self, ready: bool) {
         self.ready.store(ready, Ordering::Release);
     }
-    fn flush(&self) -> Result<()> {
-        self.store.flush()
+    fn store(&self) -> Arc<dyn crate::storage::ShapeStore> {
+        self.store.clone()
     }
 }
 
@@ -246,7 +247,7 @@ impl Running {
                 let _ = join.await;
             }
         }
-        self.app.flush()?;
+        self.app.store().flush().await?;
         // Give blocking jobs that hold the index a moment to finish and drop it.
         let deadline = Instant::now() + self.grace;
         while Arc::strong_count(&self.app) > 1 && Instant::now() < deadline {
@@ -270,10 +271,23 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
     let grace = Duration::from_secs_f64(cfg.shutdown_grace_secs);
     let listener = tokio::net::TcpListener::bind(&cfg.addr).await?;
     let addr = listener.local_addr()?;
-    let app = tokio::task::spawn_blocking(move || App::load(cfg, engine))
+    let store = match cfg.store_url() {
+        Some(url) => crate::storage::open(url).await?,
+        None => crate::storage::open_dir(cfg.data.clone()).await?,
+    };
+    let cluster = match cfg.queue_url() {
+        Some(url) => Some(super::cluster::Cluster::connect(&cfg, url).await?),
+        None => None,
+    };
+    let rt = tokio::runtime::Handle::current();
+    let mut app = tokio::task::spawn_blocking(move || App::load(cfg, engine, store, rt))
         .await
         .map_err(|e| crate::Error::Io(std::io::Error::other(e.to_string())))??;
+    app.cluster = cluster;
     let app = Arc::new(app);
+    if app.cluster.is_some() {
+        app.spawn_replica(Duration::from_secs_f64(app.cfg.reconcile_secs));
+    }
     let router = router(app.clone());
     app.ready.store(true, Ordering::Release);
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();

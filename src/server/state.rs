@@ -1,40 +1,33 @@
 //! The server's state and its non-HTTP operations: loading, ingest, delete, search,
 //! recalibration. Handlers only translate HTTP to these calls.
 
-use super::admission::{Admission, AdmissionConfig, Cancel, Cost};
+use super::admission::{Admission, Cancel, Cost};
 use super::config::ServerConfig;
 use super::env::ServerEnv;
-use super::limits::stored_original;
 use super::metrics as m;
 use super::problem::ApiError;
-use crate::index::{Engine, Inserted, ScanIndex, ShapeRecord, Store};
-use crate::mesh::read::{detect_format, read_mesh, Format, ReadLimits};
-use crate::ranking::{Calibration, QuerySpec};
-use crate::rerank::{compute_payload, GwPayload, PayloadSpec};
-use crate::search::corpus::{Corpus, Encoded, Layout};
+use crate::index::{Engine, ScanIndex, ShapeRecord};
+use crate::mesh::read::{read_mesh, Format, ReadLimits};
+use crate::ranking::QuerySpec;
+use crate::rerank::GwPayload;
+use crate::search::corpus::Encoded;
 use crate::search::{Entry, Query, Stage, StageRequest};
 use crate::signature::Signature;
-use crate::spectrum::analyze;
-use rayon::prelude::*;
+use crate::storage::{InsertOutcome, ShapeStore};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, RwLock};
 use std::time::Instant;
-
-/// Calibration as stored in `meta` (the calibration plus the count it saw).
-#[derive(Serialize, Deserialize)]
-struct StoredCalibration {
-    calibrated_on: usize,
-    calibration: Calibration,
-}
 
 /// Shared state of a running server.
 pub struct App {
     /// Configuration.
     pub cfg: ServerConfig,
-    /// The sled store.
-    pub store: Store,
+    /// The store (sled index or PostgreSQL, see [`crate::storage`]).
+    pub store: Arc<dyn ShapeStore>,
+    /// The runtime the store's futures run on (see [`App::block`]).
+    pub(super) rt: tokio::runtime::Handle,
     /// Signatures and scoring.
     pub engine: Arc<Engine>,
     /// The in-memory scan structure.
@@ -45,9 +38,11 @@ pub struct App {
     pub limits: ReadLimits,
     /// False until loaded, and again once shutting down.
     pub ready: AtomicBool,
-    recalibrating: AtomicBool,
+    pub(super) recalibrating: AtomicBool,
     /// Metrics handle.
     pub metrics: Option<metrics_exporter_prometheus::PrometheusHandle>,
+    /// The work queue and change feed, when this node is one of a cluster.
+    pub(super) cluster: Option<super::cluster::Cluster>,
 }
 
 /// Per-stage milliseconds of one ingest or query analysis.
@@ -220,8 +215,7 @@ pub fn validate_tags(tags: &[String]) -> Result<(), ApiError> {
 }
 
 impl App {
-    /// Prepare + spectrum + signature (+ re-ranking payload when `with_payload`) of a parsed
-    /// mesh, recording the stage timings: the one path shared by ingest and search-by-upload.
+    /// [`super::prepared::analyze_and_sign`] with this server's engine.
     fn analyze_and_sign(
         &self,
         mesh: &crate::mesh::Mesh,
@@ -229,126 +223,16 @@ impl App {
         with_payload: bool,
         cancel: &Cancel,
     ) -> Result<(crate::spectrum::Analysis, Signature, Option<GwPayload>), ApiError> {
-        cancel.check()?;
-        let analysis = analyze(mesh, &self.engine.analyze_options())?;
-        cancel.check()?;
-        t.prepare_ms = analysis.timings.prepare_ms;
-        t.laplacian_ms = analysis.timings.laplacian_ms;
-        t.factorization_ms = analysis.timings.factorization_ms;
-        t.eigensolve_ms = analysis.timings.eigensolve_ms;
-        let t2 = Instant::now();
-        let sig = self.engine.compute(&analysis)?;
-        t.signature_ms = ms(t2);
-        cancel.check()?;
-        let payload = if with_payload {
-            let t3 = Instant::now();
-            let p = compute_payload(&analysis, &PayloadSpec::default())?;
-            t.payload_ms = ms(t3);
-            Some(p)
-        } else {
-            None
-        };
-        Ok((analysis, sig, payload))
+        super::prepared::analyze_and_sign(&self.engine, mesh, t, with_payload, cancel)
     }
 
-    /// Opens the store, recomputes stale signatures, calibrates if needed, builds the scan.
-    pub fn load(cfg: ServerConfig, engine: Engine) -> crate::Result<Self> {
-        let store = Store::open(&cfg.data)?;
-        let engine = Arc::new(engine);
-        let limits = ReadLimits {
-            max_bytes: cfg.max_body_bytes,
-            max_vertices: cfg.max_vertices,
-            max_faces: cfg.max_faces,
-            ..ReadLimits::default()
-        };
-        let spec_key = engine.spec_key();
-        let default_query = serde_json::to_vec(&engine.default_query())
-            .map_err(|e| crate::Error::InvalidArgument(format!("default query: {e}")))?;
-        store.set_specs(&default_query, &spec_key)?;
-
-        let mut shapes = Vec::new();
-        let mut recomputed = 0usize;
-        for (mut rec, bytes) in store.all()? {
-            let sig = match engine.decode_signature(&bytes) {
-                Ok(s) if rec.spec_key == spec_key && engine.signature_spec_key(&s) == spec_key => s,
-                stale => {
-                    // Derivable data: recompute from the stored original.
-                    if let Err(e) = &stale {
-                        tracing::warn!(id = %rec.id, error = %e, "unreadable signature; recomputing");
-                    }
-                    let Some(orig) = store.mesh(&rec.id)? else {
-                        tracing::error!(id = %rec.id, "no original mesh to recompute from; skipped");
-                        continue;
-                    };
-                    let hint = Format::from_extension(&rec.format);
-                    let mesh = read_mesh(&orig, hint, &ReadLimits::unlimited())?;
-                    let analysis = analyze(&mesh, &engine.analyze_options())?;
-                    let sig = engine.compute(&analysis)?;
-                    rec.spec_key = spec_key.clone();
-                    store.replace_signature(&rec, &engine.encode_signature(&sig))?;
-                    // The payload depends on the same analysis (eigenpairs): refresh it too.
-                    let payload = compute_payload(&analysis, &PayloadSpec::default())?;
-                    store.set_payload(&rec.id, &payload.to_bytes())?;
-                    recomputed += 1;
-                    sig
-                }
-            };
-            shapes.push((rec.id, rec.name, rec.tags, sig));
-        }
-        if recomputed > 0 {
-            tracing::info!(recomputed, "signatures recomputed for the current spec");
-        }
-
-        let stored: Option<StoredCalibration> = store
-            .calibration()?
-            .and_then(|b| serde_json::from_slice(&b).ok());
-        let scan = if shapes.is_empty() {
-            ScanIndex::default()
-        } else {
-            let (cal, on) = match stored {
-                Some(s)
-                    if recomputed == 0
-                        && !moved(s.calibrated_on, shapes.len(), cfg.recalibrate_fraction) =>
-                {
-                    (s.calibration, s.calibrated_on)
-                }
-                other => {
-                    let epoch = other
-                        .map(|s| engine.calibration_epoch(&s.calibration) + 1)
-                        .unwrap_or(1);
-                    let sigs: Vec<&Signature> = shapes.iter().map(|s| &s.3).collect();
-                    let cal = engine.calibrate(&sigs, epoch);
-                    let on = shapes.len();
-                    store.set_calibration(&to_json(&StoredCalibration {
-                        calibrated_on: on,
-                        calibration: cal.clone(),
-                    }))?;
-                    (cal, on)
-                }
-            };
-            ScanIndex::build(Arc::new(cal), on, shapes)
-        };
-        let admission = Admission::new(&AdmissionConfig {
-            workers: cfg.effective_workers(),
-            heavy_share: cfg.heavy_share,
-            queue_capacity: cfg.queue_capacity,
-            heavy_nice: cfg.heavy_nice,
-            retry_after: cfg.retry_after_secs,
-            request_timeout: std::time::Duration::from_secs_f64(cfg.request_timeout_secs),
-        })?;
-        let app = App {
-            admission,
-            cfg,
-            store,
-            engine,
-            scan: Arc::new(RwLock::new(scan)),
-            limits,
-            ready: AtomicBool::new(false),
-            recalibrating: AtomicBool::new(false),
-            metrics: m::handle(),
-        };
-        app.update_gauges();
-        Ok(app)
+    /// Runs a store call from a blocking thread (admission work, loading, recalibration) on
+    /// the server's runtime and waits for it. Never called on an async worker thread.
+    pub(super) fn block<T>(
+        &self,
+        fut: impl std::future::Future<Output = crate::Result<T>>,
+    ) -> crate::Result<T> {
+        self.rt.block_on(fut)
     }
 
     /// Sets the index gauges.
@@ -364,12 +248,18 @@ impl App {
         };
         metrics::gauge!("shapeseek_index_shapes").set(n as f64);
         metrics::gauge!("shapeseek_calibration_epoch").set(epoch as f64);
-        metrics::gauge!("shapeseek_index_bytes").set(self.store.size_on_disk() as f64);
+        // Callable from any thread: the size is read by a task of its own.
+        let store = self.store.clone();
+        self.rt.spawn(async move {
+            if let Ok(b) = store.size_on_disk().await {
+                metrics::gauge!("shapeseek_index_bytes").set(b as f64);
+            }
+        });
     }
 
     /// The stored re-ranking payload of a shape (`None` when it has none).
     pub(super) fn stored_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
-        match self.store.payload(id).map_err(storage)? {
+        match self.block(self.store.payload(id)).map_err(storage)? {
             None => Ok(None),
             Some(b) => GwPayload::from_bytes(&b).map(Some).map_err(|e| {
                 ApiError::internal(format!("stored payload of {id} is unreadable: {e}"))
@@ -399,7 +289,7 @@ impl App {
     ) -> Result<IngestResult, ApiError> {
         let t0 = Instant::now();
         let digest: [u8; 32] = Sha256::digest(&up.bytes).into();
-        if let Some(r) = self.existing(&digest)? {
+        if let Some(r) = self.existing(&digest).await? {
             return Ok(r);
         }
         let app = self.clone();
@@ -411,14 +301,20 @@ impl App {
             })
             .await?;
         if res.created {
+            self.announce(crate::queue::Change::Insert { id: res.id.clone() })
+                .await;
             self.after_change();
         }
         Ok(res)
     }
 
-    fn existing(&self, digest: &[u8; 32]) -> Result<Option<IngestResult>, ApiError> {
-        if let Some(id) = self.store.id_for_hash(digest).map_err(storage)? {
-            if let Some(rec) = self.store.get(&id).map_err(storage)? {
+    /// The stored shape with this content hash, as an ingest answer (`created: false`).
+    pub(super) async fn existing(
+        &self,
+        digest: &[u8; 32],
+    ) -> Result<Option<IngestResult>, ApiError> {
+        if let Some(id) = self.store.id_for_hash(digest).await.map_err(storage)? {
+            if let Some(rec) = self.store.get(&id).await.map_err(storage)? {
                 return Ok(Some(IngestResult {
                     id,
                     created: false,
@@ -439,49 +335,34 @@ impl App {
         cancel: &Cancel,
     ) -> Result<IngestResult, ApiError> {
         // A twin upload may have been stored while this one waited.
-        if let Some(r) = self.existing(&digest)? {
+        if let Some(r) = self.rt.block_on(self.existing(&digest))? {
             return Ok(r);
         }
         let mut t = Timings::default();
-        let t1 = Instant::now();
-        let format = detect_format(&up.bytes, up.hint)?;
-        let mesh = read_mesh(&up.bytes, Some(format), &self.limits)?;
-        t.read_ms = ms(t1);
-        let (stored, reencoded_from) = stored_original(&self.cfg, &up.bytes, &mesh, format)?;
-        let area = mesh.area();
-        let (analysis, sig, payload) = self.analyze_and_sign(&mesh, &mut t, true, cancel)?;
-        let payload = payload.map(|p| p.to_bytes());
+        let prepared = super::prepared::prepare_upload(
+            &self.engine,
+            &self.cfg,
+            &self.limits,
+            &up,
+            digest,
+            &mut t,
+            cancel,
+        )?;
         // The last point where an abandoned ingest stops: past it the shape is stored.
         cancel.check()?;
         let t3 = Instant::now();
-        let id = self.store.new_id().map_err(storage)?;
-        let record = ShapeRecord {
-            name: up.name.clone().unwrap_or_else(|| id.clone()),
-            id,
-            tags: up.tags.clone(),
-            format: format.name().to_string(),
-            content_type: format.mime().to_string(),
-            bytes: stored.len() as u64,
-            vertices: mesh.vertices.len(),
-            faces: mesh.faces.len(),
-            area,
-            sha256: hex::encode(digest),
-            created_unix_ms: crate::index::store::now_unix_ms(),
-            prepare: analysis.report.clone(),
-            spec_key: self.engine.signature_spec_key(&sig),
-        };
-        let sig_bytes = self.engine.encode_signature(&sig);
-        let outcome = self
-            .store
-            .insert(&record, &digest, &sig_bytes, &stored, payload.as_deref())
-            .map_err(storage)?;
+        let id = self.block(self.store.new_id()).map_err(storage)?;
+        let (shape, sig, reencoded_from) = prepared.into_new_shape(&id);
+        let record = shape.record.clone();
+        let outcome = self.block(self.store.insert(shape)).map_err(storage)?;
         let id = match outcome {
-            Inserted::Existing(id) => {
+            InsertOutcome::AlreadyPresent(id) => {
                 return self
-                    .existing(&digest)?
+                    .rt
+                    .block_on(self.existing(&digest))?
                     .ok_or_else(|| ApiError::internal(format!("shape {id} vanished")));
             }
-            Inserted::New(id) => id,
+            InsertOutcome::Inserted(id) => id,
         };
         {
             let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
@@ -512,130 +393,23 @@ impl App {
 
     /// Deletes a shape. False when absent.
     pub async fn delete(self: &Arc<Self>, id: String) -> Result<bool, ApiError> {
+        let removed = self.store.delete(&id).await.map_err(storage)?;
         let app = self.clone();
-        let removed = tokio::task::spawn_blocking(move || -> Result<bool, ApiError> {
-            let removed = app.store.delete(&id).map_err(storage)?;
+        let held = id.clone();
+        // The scan's write lock may wait for a running search: not on an async worker.
+        tokio::task::spawn_blocking(move || {
             app.scan
                 .write()
                 .unwrap_or_else(|p| p.into_inner())
-                .remove(&id);
-            Ok(removed)
+                .remove(&held);
         })
         .await
-        .map_err(ApiError::internal)??;
+        .map_err(ApiError::internal)?;
         if removed {
+            self.announce(crate::queue::Change::Delete { id }).await;
             self.after_change();
         }
         Ok(removed)
-    }
-
-    /// True when the index size moved by more than the configured fraction since the last
-    /// calibration.
-    fn needs_recalibration(&self) -> bool {
-        self.scan
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .needs_recalibration(self.cfg.recalibrate_fraction)
-    }
-
-    /// After an insert or delete: gauges, and a background recalibration when the index size
-    /// moved by more than the configured fraction (searches go on meanwhile).
-    fn after_change(self: &Arc<Self>) {
-        self.update_gauges();
-        if self.needs_recalibration() && !self.recalibrating.swap(true, Ordering::AcqRel) {
-            let app = self.clone();
-            // Recalibration is CPU work no request waits for: it runs on the heavy lane's
-            // threads, not beside cheap searches.
-            tokio::task::spawn_blocking(move || {
-                app.admission.on_heavy_pool(|| app.recalibrate_loop())
-            });
-        }
-    }
-
-    fn recalibrate_loop(&self) {
-        loop {
-            let (snapshot, epoch) = {
-                let s = self.scan.read().unwrap_or_else(|p| p.into_inner());
-                if !s.needs_recalibration(self.cfg.recalibrate_fraction) {
-                    break;
-                }
-                (
-                    s.ids(),
-                    s.calibration()
-                        .map(|c| self.engine.calibration_epoch(c))
-                        .unwrap_or(0)
-                        + 1,
-                )
-            };
-            let t = Instant::now();
-            // Signatures are not kept in memory: read them from the store, outside the lock.
-            let sigs: Vec<(usize, Signature)> = snapshot
-                .par_iter()
-                .enumerate()
-                .filter_map(|(i, id)| self.stored_signature(id).map(|s| (i, s)))
-                .collect();
-            let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
-            let cal = Arc::new(self.engine.calibrate(&refs, epoch));
-            let layout = Layout::of(&cal);
-            let mut encoded: Vec<Encoded> = vec![Encoded::absent(&layout); snapshot.len()];
-            let done: Vec<(usize, Encoded)> = sigs
-                .par_iter()
-                .map(|(i, s)| (*i, Encoded::from_signature(s, &cal, &layout)))
-                .collect();
-            drop(refs);
-            drop(sigs);
-            for (i, e) in done {
-                encoded[i] = e;
-            }
-            let corpus = Corpus::build(layout, &encoded);
-            drop(encoded);
-            let on = snapshot.len();
-            if let Err(e) = self.store.set_calibration(&to_json(&StoredCalibration {
-                calibrated_on: on,
-                calibration: (*cal).clone(),
-            })) {
-                tracing::error!(error = %e, "could not persist the calibration");
-            }
-            self.scan
-                .write()
-                .unwrap_or_else(|p| p.into_inner())
-                .install_calibration(
-                    cal,
-                    on,
-                    &snapshot,
-                    corpus,
-                    &mut |id, cal, layout| match self.stored_signature(id) {
-                        Some(s) => Encoded::from_signature(&s, cal, layout),
-                        None => Encoded::absent(layout),
-                    },
-                );
-            tracing::info!(epoch, shapes = on, ms = ms(t), "recalibrated");
-            self.update_gauges();
-        }
-        self.recalibrating.store(false, Ordering::Release);
-        // A write that came between the last check and the reset saw the flag set and left the
-        // work to this loop: check once more.
-        if self.needs_recalibration() && !self.recalibrating.swap(true, Ordering::AcqRel) {
-            self.recalibrate_loop();
-        }
-    }
-
-    /// The stored signature of `id` (`None`, logged, when it is missing or unreadable).
-    fn stored_signature(&self, id: &str) -> Option<Signature> {
-        match self.store.signature(id) {
-            Ok(Some(b)) => match self.engine.decode_signature(&b) {
-                Ok(s) => Some(s),
-                Err(e) => {
-                    tracing::error!(id, error = %e, "unreadable stored signature");
-                    None
-                }
-            },
-            Ok(None) => None,
-            Err(e) => {
-                tracing::error!(id, error = %e, "could not read a stored signature");
-                None
-            }
-        }
     }
 
     /// True when a search with `opts` runs a stage that compares re-ranking payloads (the
@@ -913,12 +687,4 @@ fn invalid_detail(e: crate::Error) -> String {
         crate::Error::InvalidArgument(m) => m,
         other => other.to_string(),
     }
-}
-
-fn moved(calibrated_on: usize, n: usize, fraction: f64) -> bool {
-    (n as f64 - calibrated_on as f64).abs() > fraction * (calibrated_on as f64).max(1.0)
-}
-
-fn to_json<T: Serialize>(v: &T) -> Vec<u8> {
-    serde_json::to_vec(v).unwrap_or_default()
 }

@@ -193,6 +193,12 @@ pub trait ShapeStore: Send + Sync {
 
     /// Sets a free `meta` value, durably. `schema_version` and `calibration` are reserved.
     async fn meta_set(&self, key: &str, value: &[u8]) -> Result<()>;
+
+    /// Makes everything written so far durable. Every write above already is when it returns;
+    /// this is the shutdown's last word (sled: one more flush; PostgreSQL: nothing to do).
+    async fn flush(&self) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// Calls `f` on every (record, signature) pair in id order, `batch` at a time.
@@ -266,10 +272,29 @@ impl CalibrationLock {
     /// [`CalibrationLock::next_epoch`], computed on `calibrated_on` shapes, durably, and
     /// releases the lock.
     pub async fn commit(self, calibrated_on: u64, json: Vec<u8>) -> Result<StoredCalibration> {
+        let epoch = self.next_epoch();
+        self.commit_as(epoch, calibrated_on, json).await
+    }
+
+    /// [`CalibrationLock::commit`] as `epoch`, which must be at least
+    /// [`CalibrationLock::next_epoch`] (epochs only grow; a server whose in-memory scan holds a
+    /// provisional epoch that was never stored skips past it).
+    pub async fn commit_as(
+        self,
+        epoch: u64,
+        calibrated_on: u64,
+        json: Vec<u8>,
+    ) -> Result<StoredCalibration> {
+        if epoch < self.next_epoch() {
+            return Err(Error::InvalidArgument(format!(
+                "calibration epoch {epoch} is not after the stored {}",
+                self.next_epoch() - 1
+            )));
+        }
         serde_json::from_slice::<serde::de::IgnoredAny>(&json)
             .map_err(|e| Error::InvalidArgument(format!("calibration is not valid JSON: {e}")))?;
         let cal = StoredCalibration {
-            epoch: self.next_epoch(),
+            epoch,
             calibrated_on,
             json,
         };
@@ -321,20 +346,29 @@ pub(crate) fn parse_cursor(after: Option<&str>) -> Result<Option<u64>> {
         .transpose()
 }
 
+/// True for a `postgres://` or `postgresql://` URL.
+pub fn is_postgres_url(target: &str) -> bool {
+    target.starts_with("postgres://") || target.starts_with("postgresql://")
+}
+
 /// Opens the store named by `target`: a `postgres://` or `postgresql://` URL opens
 /// [`PgStore`] (checking its schema version), anything else is a sled data directory.
 pub async fn open(target: &str) -> Result<std::sync::Arc<dyn ShapeStore>> {
-    if target.starts_with("postgres://") || target.starts_with("postgresql://") {
+    if is_postgres_url(target) {
         Ok(std::sync::Arc::new(
             PgStore::connect(target, postgres::PoolOptions::default()).await?,
         ))
     } else {
-        let dir = std::path::PathBuf::from(target);
-        let s = tokio::task::spawn_blocking(move || SledStorage::open(&dir))
-            .await
-            .map_err(join_err)??;
-        Ok(std::sync::Arc::new(s))
+        open_dir(std::path::PathBuf::from(target)).await
     }
+}
+
+/// Opens (or creates) the sled index in the data directory `dir`.
+pub async fn open_dir(dir: std::path::PathBuf) -> Result<std::sync::Arc<dyn ShapeStore>> {
+    let s = tokio::task::spawn_blocking(move || SledStorage::open(&dir))
+        .await
+        .map_err(join_err)??;
+    Ok(std::sync::Arc::new(s))
 }
 
 pub(crate) fn join_err(e: tokio::task::JoinError) -> Error {

@@ -49,6 +49,31 @@ impl Default for PoolOptions {
 #[derive(Clone)]
 pub struct PgStore {
     pool: Pool,
+    /// The runtime the connections' tasks run on (see [`io_runtime`]).
+    io: tokio::runtime::Handle,
+}
+
+/// A runtime of its own, on one thread, for the tasks that drive the PostgreSQL connections.
+///
+/// A connection's socket is driven by a task spawned where it was opened. Were that the
+/// server's runtime, a query awaited by a thread that holds the scan's write lock (installing
+/// a calibration reads stored signatures) could wait for a runtime worker that is itself
+/// blocked on that lock: a deadlock. Connections opened here need no server worker at all.
+fn io_runtime() -> Result<tokio::runtime::Handle> {
+    static IO: std::sync::OnceLock<tokio::runtime::Handle> = std::sync::OnceLock::new();
+    if let Some(h) = IO.get() {
+        return Ok(h.clone());
+    }
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| storage_err(format!("postgres: I/O runtime: {e}")))?;
+    let handle = rt.handle().clone();
+    std::thread::Builder::new()
+        .name("shapeseek-pg-io".into())
+        .spawn(move || rt.block_on(std::future::pending::<()>()))
+        .map_err(|e| storage_err(format!("postgres: I/O thread: {e}")))?;
+    Ok(IO.get_or_init(|| handle).clone())
 }
 
 fn pg(what: &'static str) -> impl Fn(tokio_postgres::Error) -> Error {
@@ -119,16 +144,23 @@ impl PgStore {
             .runtime(Runtime::Tokio1)
             .build()
             .map_err(|e| storage_err(format!("postgres: building the pool: {e}")))?;
-        let store = PgStore { pool };
+        let store = PgStore {
+            pool,
+            io: io_runtime()?,
+        };
         let client = store.client().await?;
         pg_migrate::check(&client, version).await?;
         Ok(store)
     }
 
-    async fn client(&self) -> Result<Object> {
-        self.pool
-            .get()
+    /// A pooled connection (the queue's job table shares the pool).
+    pub(crate) async fn client(&self) -> Result<Object> {
+        // Opened (when the pool needs a new one) on the I/O runtime, so its task runs there.
+        let pool = self.pool.clone();
+        self.io
+            .spawn(async move { pool.get().await })
             .await
+            .map_err(|e| storage_err(format!("postgres: connection task: {e}")))?
             .map_err(|e| storage_err(format!("postgres: no connection: {e}")))
     }
 
@@ -222,7 +254,7 @@ impl LockHolder for PgLock {
         let stmt = c
             .prepare_cached(
                 "UPDATE calibration SET epoch = $1, calibrated_on = $2, body = $3::text::json, \
-                 updated_at = now() WHERE singleton AND epoch = $4",
+                 updated_at = now() WHERE singleton AND epoch < $1",
             )
             .await
             .map_err(pg("preparing"))?;
@@ -230,12 +262,7 @@ impl LockHolder for PgLock {
         let n = c
             .execute(
                 &stmt,
-                &[
-                    &epoch,
-                    &to_i64(cal.calibrated_on, "calibrated_on")?,
-                    &body,
-                    &(epoch - 1),
-                ],
+                &[&epoch, &to_i64(cal.calibrated_on, "calibrated_on")?, &body],
             )
             .await
             .map_err(pg("writing the calibration"))?;

@@ -322,6 +322,10 @@ impl ShapeStore for SledStorage {
         let (key, value) = (key.to_string(), value.to_vec());
         self.run(move |s| s.meta_set(&key, &value)).await
     }
+
+    async fn flush(&self) -> Result<()> {
+        self.run(|s| s.flush()).await
+    }
 }
 
 #[cfg(test)]

@@ -1,0 +1,224 @@
+//! Recalibration: when the corpus size moved by more than `recalibrate_fraction` since the
+//! last calibration, a background task on the heavy lane's threads computes a new one and
+//! installs it while searches go on.
+//!
+//! The epoch is assigned under the store's calibration lock (`try_lock_calibration`): when the
+//! lock is held elsewhere (another node of a cluster), this node does nothing and the other's
+//! epoch arrives through the store. Under the lock, a stored calibration newer than this
+//! node's that still fits the corpus is installed as it is instead of computing another, so a
+//! cluster computes each epoch once and every node ranks with the same calibration. The epoch
+//! written is the stored one + 1, or this node's + 1 when that is larger (the provisional
+//! calibration a first shape gets in memory counts as epoch 1 and is never stored).
+
+use super::load::moved;
+use super::state::App;
+use crate::queue::Change;
+use crate::ranking::Calibration;
+use crate::search::corpus::{Corpus, Encoded, Layout};
+use crate::signature::Signature;
+use rayon::prelude::*;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Instant;
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+impl App {
+    /// True when the index size moved by more than the configured fraction since the last
+    /// calibration.
+    pub(super) fn needs_recalibration(&self) -> bool {
+        self.scan
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .needs_recalibration(self.cfg.recalibrate_fraction)
+    }
+
+    /// After an insert or delete: gauges, and a background recalibration when the index size
+    /// moved by more than the configured fraction (searches go on meanwhile).
+    pub(super) fn after_change(self: &Arc<Self>) {
+        self.update_gauges();
+        if self.needs_recalibration() {
+            self.clone().calibrate_in_background(false);
+        }
+    }
+
+    /// Starts the recalibration loop unless it runs already; `provisional`: the scan's
+    /// calibration was made in memory from its first shape and must be replaced by the
+    /// store's (or a committed one) whatever the corpus size.
+    pub(super) fn calibrate_in_background(self: Arc<Self>, provisional: bool) {
+        if self.recalibrating.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        // Recalibration is CPU work no request waits for: it runs on the heavy lane's
+        // threads, not beside cheap searches.
+        tokio::task::spawn_blocking(move || {
+            self.admission
+                .on_heavy_pool(|| self.recalibrate_until_settled(provisional))
+        });
+    }
+
+    /// Runs [`App::recalibrate_loop`] until the calibration fits the corpus, or until the
+    /// lock is held elsewhere (that node's epoch arrives through the store; a cluster node's
+    /// reconciliation tries again later).
+    fn recalibrate_until_settled(&self, provisional: bool) {
+        let mut provisional = provisional;
+        loop {
+            let yielded = self.recalibrate_loop(provisional);
+            provisional = false;
+            self.recalibrating.store(false, Ordering::Release);
+            // A write that came between the last check and the reset saw the flag set and left
+            // the work to this loop: check once more.
+            if yielded
+                || !self.needs_recalibration()
+                || self.recalibrating.swap(true, Ordering::AcqRel)
+            {
+                return;
+            }
+        }
+    }
+
+    /// Recalibrates while the corpus moved; true when it stopped because the lock was held
+    /// elsewhere or could not be taken.
+    fn recalibrate_loop(&self, mut provisional: bool) -> bool {
+        loop {
+            let (n, local_epoch) = {
+                let s = self.scan.read().unwrap_or_else(|p| p.into_inner());
+                if !provisional && !s.needs_recalibration(self.cfg.recalibrate_fraction) {
+                    return false;
+                }
+                if s.is_empty() {
+                    return false;
+                }
+                (
+                    s.len(),
+                    s.calibration()
+                        .map(|c| self.engine.calibration_epoch(c))
+                        .unwrap_or(0),
+                )
+            };
+            let lock = match self.block(self.store.try_lock_calibration()) {
+                Ok(Some(lock)) => lock,
+                Ok(None) => {
+                    tracing::debug!("recalibration lock held elsewhere; skipped");
+                    return true;
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, "could not take the calibration lock");
+                    return true;
+                }
+            };
+            // A newer stored calibration that still fits: install it instead of computing.
+            let adopt = lock.current().and_then(|c| {
+                let fits = !moved(c.calibrated_on as usize, n, self.cfg.recalibrate_fraction);
+                let newer = c.epoch > local_epoch || (provisional && c.epoch >= local_epoch);
+                if !(fits && newer) {
+                    return None;
+                }
+                serde_json::from_slice::<Calibration>(&c.json)
+                    .ok()
+                    .map(|cal| (cal, c.calibrated_on as usize))
+            });
+            provisional = false;
+            if let Some((cal, on)) = adopt {
+                if let Err(e) = self.block(lock.release()) {
+                    tracing::warn!(error = %e, "releasing the calibration lock");
+                }
+                self.install(Arc::new(cal), on);
+                continue;
+            }
+            let epoch = lock.next_epoch().max(local_epoch + 1);
+            let t = Instant::now();
+            let snapshot = self.scan.read().unwrap_or_else(|p| p.into_inner()).ids();
+            // Signatures are not kept in memory: read them from the store, outside the lock.
+            let sigs: Vec<(usize, Signature)> = snapshot
+                .par_iter()
+                .enumerate()
+                .filter_map(|(i, id)| self.stored_signature(id).map(|s| (i, s)))
+                .collect();
+            let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
+            let cal = Arc::new(self.engine.calibrate(&refs, epoch));
+            let layout = Layout::of(&cal);
+            let mut encoded: Vec<Encoded> = vec![Encoded::absent(&layout); snapshot.len()];
+            let done: Vec<(usize, Encoded)> = sigs
+                .par_iter()
+                .map(|(i, s)| (*i, Encoded::from_signature(s, &cal, &layout)))
+                .collect();
+            drop(refs);
+            drop(sigs);
+            for (i, e) in done {
+                encoded[i] = e;
+            }
+            let corpus = Corpus::build(layout, &encoded);
+            drop(encoded);
+            let on = snapshot.len();
+            match self.commit_calibration(lock, epoch, on, &cal) {
+                Ok(()) => {
+                    let app_rt = self.rt.clone();
+                    let bus = self.cluster().map(|c| c.bus.clone());
+                    if let Some(bus) = bus {
+                        app_rt.spawn(async move {
+                            if let Err(e) = bus.announce(&Change::Calibration { epoch }).await {
+                                tracing::warn!(error = %e, "could not announce the calibration");
+                            }
+                        });
+                    }
+                }
+                Err(e) => tracing::error!(error = %e, "could not persist the calibration"),
+            }
+            self.install_built(cal, on, &snapshot, corpus);
+            tracing::info!(epoch, shapes = on, ms = ms(t), "recalibrated");
+        }
+    }
+
+    /// Installs `cal` (computed on `on` shapes): every held shape re-encoded from its stored
+    /// signature. Blocking, CPU-bound.
+    pub(super) fn install(&self, cal: Arc<Calibration>, on: usize) {
+        let snapshot = self.scan.read().unwrap_or_else(|p| p.into_inner()).ids();
+        let layout = Layout::of(&cal);
+        let encoded: Vec<Encoded> = snapshot
+            .par_iter()
+            .map(|id| match self.stored_signature(id) {
+                Some(s) => Encoded::from_signature(&s, &cal, &layout),
+                None => Encoded::absent(&layout),
+            })
+            .collect();
+        let corpus = Corpus::build(layout, &encoded);
+        drop(encoded);
+        let epoch = self.engine.calibration_epoch(&cal);
+        self.install_built(cal, on, &snapshot, corpus);
+        tracing::info!(epoch, shapes = on, "installed the stored calibration");
+    }
+
+    fn install_built(&self, cal: Arc<Calibration>, on: usize, snapshot: &[String], corpus: Corpus) {
+        self.scan
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .install_calibration(cal, on, snapshot, corpus, &mut |id, cal, layout| match self
+                .stored_signature(id)
+            {
+                Some(s) => Encoded::from_signature(&s, cal, layout),
+                None => Encoded::absent(layout),
+            });
+        self.update_gauges();
+    }
+
+    /// The stored signature of `id` (`None`, logged, when it is missing or unreadable).
+    fn stored_signature(&self, id: &str) -> Option<Signature> {
+        match self.block(self.store.signature(id)) {
+            Ok(Some(b)) => match self.engine.decode_signature(&b) {
+                Ok(s) => Some(s),
+                Err(e) => {
+                    tracing::error!(id, error = %e, "unreadable stored signature");
+                    None
+                }
+            },
+            Ok(None) => None,
+            Err(e) => {
+                tracing::error!(id, error = %e, "could not read a stored signature");
+                None
+            }
+        }
+    }
+}

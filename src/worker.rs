@@ -1,0 +1,272 @@
+//! `shapeseek worker`: pulls ingest jobs from the JetStream work queue, analyses them with
+//! the same code as a serving node ([`crate::server::prepared`]), stores the shapes in
+//! PostgreSQL and acks (see [`crate::queue`] for the whole protocol).
+//!
+//! Each of the `jobs` loops handles one message at a time:
+//!
+//! 1. claim the job (counts the attempt); unknown (deleted) or no longer pending → ack;
+//! 2. the same bytes stored already → mark done, announce, ack (a redelivery after a worker
+//!    died between the insert and the ack ends here);
+//! 3. analyse on a blocking thread, sending "in progress" every third of `ack_wait`;
+//! 4. insert under the job's id (idempotent by content hash), mark done, announce, ack;
+//! 5. a refusal of the input (4xx) → dead letter, ack; any other failure → `nak` with a delay
+//!    until the delivery count reaches `max_deliver`, then a dead letter (503) and `term`.
+
+use crate::queue::{jobs::JobInput, Bus, Change, DeadLetter, JobState, JobStore};
+use crate::server::admission::Cancel;
+use crate::server::config::ServerConfig;
+use crate::server::prepared::prepare_upload;
+use crate::server::problem::ApiError;
+use crate::server::state::{Timings, Upload};
+use crate::storage::{PgStore, ShapeStore};
+use crate::{Error, Result};
+use async_nats::jetstream::{AckKind, Message};
+use futures_util::StreamExt;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// What a worker is told.
+#[derive(Debug, Clone)]
+pub struct WorkerConfig {
+    /// Limits, stored-bytes policy, eigenpairs and queue settings (the serving nodes' own
+    /// configuration: the same file and `SHAPESEEK_*` variables).
+    pub server: ServerConfig,
+    /// Jobs analysed at once by this process.
+    pub jobs: usize,
+}
+
+struct Worker {
+    cfg: Arc<ServerConfig>,
+    engine: Arc<crate::index::Engine>,
+    limits: crate::mesh::read::ReadLimits,
+    store: PgStore,
+    jobs: JobStore,
+    bus: Bus,
+}
+
+/// Runs a worker until SIGINT/SIGTERM (a job being analysed then is not acked: JetStream
+/// redelivers it to another worker).
+pub async fn run(cfg: WorkerConfig) -> Result<()> {
+    let (Some(store_url), Some(queue_url)) = (cfg.server.store_url(), cfg.server.queue_url())
+    else {
+        return Err(Error::InvalidArgument(
+            "worker: --store postgres://… and --queue nats://… are required".into(),
+        ));
+    };
+    let store = PgStore::connect(store_url, Default::default()).await?;
+    let bus = Bus::connect(queue_url, cfg.server.queue_options()).await?;
+    let mut engine = crate::index::default_engine();
+    engine.analyze.eigen.k = cfg.server.eigenpairs;
+    let limits = crate::mesh::read::ReadLimits {
+        max_bytes: cfg.server.max_body_bytes,
+        max_vertices: cfg.server.max_vertices,
+        max_faces: cfg.server.max_faces,
+        ..Default::default()
+    };
+    let w = Arc::new(Worker {
+        jobs: JobStore::new(store.clone()),
+        cfg: Arc::new(cfg.server.clone()),
+        engine: Arc::new(engine),
+        limits,
+        store,
+        bus,
+    });
+    let mut tasks = tokio::task::JoinSet::new();
+    for _ in 0..cfg.jobs.max(1) {
+        let w = w.clone();
+        tasks.spawn(async move { w.pull_loop().await });
+    }
+    let sweeper = w.clone();
+    tasks.spawn(async move { sweeper.sweep_loop().await });
+    tracing::info!(jobs = cfg.jobs.max(1), "worker ready");
+    tokio::select! {
+        _ = crate::server::shutdown_signal() => {
+            tracing::info!("shutdown signal received; unacked jobs will be redelivered");
+            Ok(())
+        }
+        r = tasks.join_next() => match r {
+            Some(Ok(Err(e))) => Err(e),
+            Some(Err(e)) => Err(Error::Queue(format!("worker task failed: {e}"))),
+            _ => Ok(()),
+        },
+    }
+}
+
+/// How a handled job ended.
+enum Outcome {
+    Ack,
+    Retry(String),
+}
+
+impl Worker {
+    async fn pull_loop(self: Arc<Self>) -> Result<()> {
+        loop {
+            let mut msgs = self.bus.jobs().await?;
+            while let Some(m) = msgs.next().await {
+                let msg = match m {
+                    Ok(m) => m,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "pulling a job failed; reconnecting");
+                        break;
+                    }
+                };
+                self.handle(msg).await;
+            }
+            tokio::time::sleep(Duration::from_millis(500)).await;
+        }
+    }
+
+    /// Republishes jobs pending far longer than `ack_wait` (a serving node that died after
+    /// the commit and before the publish): no committed job is left behind.
+    async fn sweep_loop(self: Arc<Self>) -> Result<()> {
+        let ack_wait = self.bus.options().ack_wait;
+        let stale = (ack_wait * 10).max(Duration::from_secs(60));
+        loop {
+            tokio::time::sleep(stale / 2).await;
+            match self.jobs.stale_pending(stale.as_millis() as u64, 100).await {
+                Ok(ids) => {
+                    for id in ids {
+                        let dedupe = format!("{id}-{}", crate::index::store::now_unix_ms());
+                        if self.jobs.touch(&id).await.is_ok() {
+                            if let Err(e) = self.bus.publish_job(&id, &dedupe).await {
+                                tracing::warn!(error = %e, id, "republishing a stale job");
+                            }
+                        }
+                    }
+                }
+                Err(e) => tracing::warn!(error = %e, "looking for stale jobs"),
+            }
+        }
+    }
+
+    async fn handle(&self, msg: Message) {
+        let delivered = msg.info().map(|i| i.delivered).unwrap_or(1);
+        let id = String::from_utf8_lossy(&msg.payload).to_string();
+        let outcome = match self.run_job(&id, &msg).await {
+            Ok(o) => o,
+            Err(e) => Outcome::Retry(e.to_string()),
+        };
+        let ack = match outcome {
+            Outcome::Ack => msg.ack().await,
+            Outcome::Retry(why) if delivered >= self.bus.options().max_deliver => {
+                tracing::error!(id, delivered, error = %why, "job failed on every delivery; dead letter");
+                let dead = DeadLetter {
+                    status: 503,
+                    code: "job.retries_exhausted".into(),
+                    message: format!("failed {delivered} times; last error: {why}"),
+                };
+                if let Err(e) = self.jobs.fail(&id, &dead).await {
+                    tracing::error!(error = %e, id, "could not record the dead letter");
+                }
+                msg.ack_with(AckKind::Term).await
+            }
+            Outcome::Retry(why) => {
+                tracing::warn!(id, delivered, error = %why, "job failed; will be retried");
+                let delay = Duration::from_millis(500 * (1 << delivered.clamp(0, 6)));
+                msg.ack_with(AckKind::Nak(Some(delay))).await
+            }
+        };
+        if let Err(e) = ack {
+            tracing::warn!(error = %e, id, "ack failed; the job will be redelivered");
+        }
+    }
+
+    async fn run_job(&self, id: &str, msg: &Message) -> Result<Outcome> {
+        let Some(input) = self.jobs.claim(id).await? else {
+            tracing::info!(id, "unknown job (deleted); dropped");
+            return Ok(Outcome::Ack);
+        };
+        if input.state != JobState::Pending {
+            return Ok(Outcome::Ack);
+        }
+        if let Some(existing) = self.store.id_for_hash(&input.sha256).await? {
+            self.finish(id, &existing).await?;
+            return Ok(Outcome::Ack);
+        }
+        let Some(bytes) = input.upload.clone() else {
+            return Err(crate::index::store::storage_err(format!(
+                "pending job {id} has no upload"
+            )));
+        };
+        let prepared = {
+            let work = self.analyse(input, bytes);
+            tokio::pin!(work);
+            let beat = (self.bus.options().ack_wait / 3).max(Duration::from_millis(100));
+            loop {
+                tokio::select! {
+                    r = &mut work => break r,
+                    _ = tokio::time::sleep(beat) => {
+                        if let Err(e) = msg.ack_with(AckKind::Progress).await {
+                            tracing::warn!(error = %e, id, "progress ack failed");
+                        }
+                    }
+                }
+            }
+        };
+        let prepared = match prepared {
+            Ok(p) => p,
+            Err(e) if e.status.is_client_error() => {
+                let dead = DeadLetter {
+                    status: e.status.as_u16(),
+                    code: e.code.clone(),
+                    message: e.detail.clone(),
+                };
+                tracing::info!(id, code = %e.code, "input refused; dead letter");
+                self.jobs.fail(id, &dead).await?;
+                return Ok(Outcome::Ack);
+            }
+            Err(e) => return Ok(Outcome::Retry(format!("{}: {}", e.code, e.detail))),
+        };
+        let (shape, _, _) = prepared.into_new_shape(id);
+        let outcome = self.store.insert(shape).await?;
+        self.finish(id, outcome.id()).await?;
+        Ok(Outcome::Ack)
+    }
+
+    async fn analyse(
+        &self,
+        input: JobInput,
+        bytes: Vec<u8>,
+    ) -> std::result::Result<crate::server::prepared::Prepared, ApiError> {
+        let up = Upload {
+            bytes: bytes.into(),
+            hint: input
+                .format_hint
+                .as_deref()
+                .and_then(|f| f.parse::<crate::mesh::Format>().ok()),
+            name: input.name.clone(),
+            tags: input.tags.clone(),
+        };
+        let (engine, cfg, limits) = (self.engine.clone(), self.cfg.clone(), self.limits);
+        let digest = input.sha256;
+        tokio::task::spawn_blocking(move || {
+            let mut t = Timings::default();
+            prepare_upload(
+                &engine,
+                &cfg,
+                &limits,
+                &up,
+                digest,
+                &mut t,
+                &Cancel::never(),
+            )
+        })
+        .await
+        .map_err(ApiError::internal)?
+    }
+
+    async fn finish(&self, id: &str, shape_id: &str) -> Result<()> {
+        self.jobs.complete(id, shape_id).await?;
+        if let Err(e) = self
+            .bus
+            .announce(&Change::Insert {
+                id: shape_id.to_string(),
+            })
+            .await
+        {
+            // Serving nodes reconcile with the store: a lost announcement only delays them.
+            tracing::warn!(error = %e, id, "could not announce the shape");
+        }
+        Ok(())
+    }
+}
