@@ -814,7 +814,11 @@ fn queue_overhead() {
                 .await
                 .unwrap();
         });
-        let url = pg.url.replace("/postgres", &format!("/{name}"));
+        // Only the database part of `postgres://postgres@host:port/postgres` changes.
+        let url = match pg.url.rsplit_once('/') {
+            Some((base, _)) => format!("{base}/{name}"),
+            None => panic!("no database in {}", pg.url),
+        };
         assert!(Command::new(BIN)
             .args(["migrate", "--store", &url])
             .output()
