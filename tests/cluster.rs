@@ -86,6 +86,30 @@ fn free_port() -> u16 {
         .expect("a free port")
 }
 
+/// A private `nats-server -js` on a free port with its store under `tmp/nats`, once it accepts
+/// connections (at most 20 s), and its URL.
+fn start_nats(nats: &Path, tmp: &Path) -> (Proc, String) {
+    let port = free_port();
+    let dir = tmp.join("nats");
+    std::fs::create_dir_all(&dir).unwrap();
+    let proc = Proc::spawn(
+        "nats",
+        Command::new(nats)
+            .args(["-a", "127.0.0.1", "-p", &port.to_string(), "-js", "-sd"])
+            .arg(&dir),
+        tmp.join("nats.log"),
+    );
+    let t = Instant::now();
+    while TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "nats-server did not start"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    (proc, format!("nats://127.0.0.1:{port}"))
+}
+
 /// A private PostgreSQL, stopped (immediately) and removed on drop.
 struct Pg {
     dir: PathBuf,
@@ -460,32 +484,7 @@ fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
         .unwrap();
     let tmp = tmp.path();
     let pg = Pg::start(&pg_bin, tmp);
-    let nats_port = free_port();
-    let nats_dir = tmp.join("nats");
-    std::fs::create_dir_all(&nats_dir).unwrap();
-    let _nats = Proc::spawn(
-        "nats",
-        Command::new(&nats)
-            .args([
-                "-a",
-                "127.0.0.1",
-                "-p",
-                &nats_port.to_string(),
-                "-js",
-                "-sd",
-            ])
-            .arg(&nats_dir),
-        tmp.join("nats.log"),
-    );
-    let nats_url = format!("nats://127.0.0.1:{nats_port}");
-    let t = Instant::now();
-    while TcpStream::connect(("127.0.0.1", nats_port)).is_err() {
-        assert!(
-            t.elapsed() < Duration::from_secs(20),
-            "nats-server did not start"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    let (_nats, nats_url) = start_nats(&nats, tmp);
 
     // An unmigrated database is refused; `migrate` applies the schema once.
     let out = Command::new(BIN)
@@ -776,27 +775,7 @@ fn queue_overhead() {
         .unwrap();
     let tmp = tmp.path();
     let pg = Pg::start(&pg_bin, tmp);
-    let nats_port = free_port();
-    let nats_dir = tmp.join("nats");
-    std::fs::create_dir_all(&nats_dir).unwrap();
-    let _nats = Proc::spawn(
-        "nats",
-        Command::new(&nats)
-            .args([
-                "-a",
-                "127.0.0.1",
-                "-p",
-                &nats_port.to_string(),
-                "-js",
-                "-sd",
-            ])
-            .arg(&nats_dir),
-        tmp.join("nats.log"),
-    );
-    let nats_url = format!("nats://127.0.0.1:{nats_port}");
-    while TcpStream::connect(("127.0.0.1", nats_port)).is_err() {
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    let (_nats, nats_url) = start_nats(&nats, tmp);
     let meshes = Arc::new(corpus(tmp));
     let n = meshes.len();
     let db = |name: &str| {
