@@ -21,9 +21,11 @@ use crate::server::state::{Timings, Upload};
 use crate::storage::{PgStore, ShapeStore};
 use crate::{Error, Result};
 use async_nats::jetstream::{AckKind, Message};
-use futures_util::StreamExt;
 use std::sync::Arc;
 use std::time::Duration;
+
+/// How long one pull request waits for a job before the worker asks again.
+const PULL_WAIT: Duration = Duration::from_secs(5);
 
 /// What a worker is told.
 #[derive(Debug, Clone)]
@@ -101,16 +103,23 @@ enum Outcome {
 impl Worker {
     async fn pull_loop(self: Arc<Self>) -> Result<()> {
         loop {
-            let mut msgs = self.bus.jobs().await?;
-            while let Some(m) = msgs.next().await {
-                let msg = match m {
-                    Ok(m) => m,
+            let consumer = match self.bus.worker_consumer().await {
+                Ok(c) => c,
+                Err(e) => {
+                    tracing::warn!(error = %e, "opening the job consumer failed; retrying");
+                    tokio::time::sleep(Duration::from_millis(500)).await;
+                    continue;
+                }
+            };
+            loop {
+                match Bus::next_job(&consumer, PULL_WAIT).await {
+                    Ok(Some(msg)) => self.handle(msg).await,
+                    Ok(None) => {}
                     Err(e) => {
                         tracing::warn!(error = %e, "pulling a job failed; reconnecting");
                         break;
                     }
-                };
-                self.handle(msg).await;
+                }
             }
             tokio::time::sleep(Duration::from_millis(500)).await;
         }
@@ -142,6 +151,7 @@ impl Worker {
     async fn handle(&self, msg: Message) {
         let delivered = msg.info().map(|i| i.delivered).unwrap_or(1);
         let id = String::from_utf8_lossy(&msg.payload).to_string();
+        tracing::debug!(id, delivered, "job received");
         let outcome = match self.run_job(&id, &msg).await {
             Ok(o) => o,
             Err(e) => Outcome::Retry(e.to_string()),
@@ -166,8 +176,9 @@ impl Worker {
                 msg.ack_with(AckKind::Nak(Some(delay))).await
             }
         };
-        if let Err(e) = ack {
-            tracing::warn!(error = %e, id, "ack failed; the job will be redelivered");
+        match ack {
+            Ok(()) => tracing::debug!(id, "job acked"),
+            Err(e) => tracing::warn!(error = %e, id, "ack failed; the job will be redelivered"),
         }
     }
 

@@ -34,6 +34,9 @@ pub struct Cluster {
     pub jobs: JobStore,
     /// NATS.
     pub bus: Bus,
+    /// Woken by every insert on the change feed: uploads waiting for their job read it then
+    /// (and, should a message be lost, after a growing back-off), not every few milliseconds.
+    pub inserted: tokio::sync::Notify,
 }
 
 impl Cluster {
@@ -53,6 +56,7 @@ impl Cluster {
         Ok(Cluster {
             jobs: JobStore::new(pg),
             bus: Bus::connect(url, cfg.queue_options()).await?,
+            inserted: tokio::sync::Notify::new(),
         })
     }
 }
@@ -65,8 +69,10 @@ pub enum Queued {
     Accepted(Job),
 }
 
-/// How often a waiting ingest reads its job.
-const POLL: Duration = Duration::from_millis(20);
+/// A waiting ingest reads its job on every insert announced on the change feed, and at the
+/// latest after this back-off, which starts at `POLL_MIN` and doubles up to `POLL_MAX`.
+const POLL_MIN: Duration = Duration::from_millis(20);
+const POLL_MAX: Duration = Duration::from_millis(500);
 
 impl App {
     /// The cluster side, when this node runs with a queue.
@@ -109,6 +115,7 @@ impl App {
                 job.id.clone()
             };
             cl.bus.publish_job(&job.id, &dedupe).await?;
+            tracing::debug!(id = job.id, "job published");
         }
         if !wait {
             let view = cl
@@ -121,7 +128,12 @@ impl App {
         let until = deadline.unwrap_or_else(|| {
             Instant::now() + Duration::from_secs_f64(self.cfg.request_timeout_secs)
         });
+        let mut backoff = POLL_MIN;
         loop {
+            // Registered before the job is read, so an insert announced meanwhile still wakes.
+            let inserted = cl.inserted.notified();
+            tokio::pin!(inserted);
+            inserted.as_mut().enable();
             let view = cl.jobs.get(&job.id).await?;
             match view {
                 Some(Job {
@@ -169,7 +181,11 @@ impl App {
                     )
                 });
             }
-            tokio::time::sleep(POLL).await;
+            let left = until.saturating_duration_since(Instant::now());
+            tokio::select! {
+                _ = &mut inserted => {}
+                _ = tokio::time::sleep(backoff.min(left)) => backoff = (backoff * 2).min(POLL_MAX),
+            }
         }
     }
 
@@ -324,7 +340,13 @@ impl App {
                             continue;
                         };
                         let res = match serde_json::from_slice::<Change>(&m.payload) {
-                            Ok(Change::Insert { id }) => app.apply_insert(&id).await,
+                            Ok(Change::Insert { id }) => {
+                                // The job is marked done before its shape is announced.
+                                if let Some(cl) = app.cluster() {
+                                    cl.inserted.notify_waiters();
+                                }
+                                app.apply_insert(&id).await
+                            }
                             Ok(Change::Delete { id }) => app.apply_delete(&id).await,
                             Ok(Change::Calibration { .. }) => app.adopt_stored_calibration().await,
                             Err(e) => {
