@@ -836,8 +836,12 @@ fn upload_all(addr: SocketAddr, meshes: &Arc<Vec<(String, Vec<u8>)>>, clients: u
     t.elapsed().as_secs_f64()
 }
 
-/// Ingest throughput of one analysis slot, direct (`serve --store postgres://… --workers 1`)
-/// against through the queue (a queued node and one `worker --jobs 1`), same meshes, 4 clients:
+/// Ingest throughput direct (`serve --store postgres://…`, uploads analysed on the node's heavy
+/// lane) against through the queue (a queued node and one `worker`), same meshes, 4 clients, the
+/// same CPU on both sides: `SHAPESEEK_OVERHEAD_SLOTS` analyses at once (default 2, one per core
+/// here) at normal priority — the direct node with `--workers S`, `heavy_share` 1 and `heavy_nice`
+/// 0 (its defaults would give it one thread at nice 10 beside a worker at full priority), the
+/// worker with `--jobs S`:
 ///
 /// `cargo test --release --test cluster queue_overhead -- --ignored --nocapture`
 /// (`SHAPESEEK_CLUSTER_MESHES`, `SHAPESEEK_CLUSTER_LIMIT` as for the cluster test).
@@ -886,12 +890,15 @@ fn queue_overhead() {
         url
     };
 
+    let slots = std::env::var("SHAPESEEK_OVERHEAD_SLOTS").unwrap_or_else(|_| "2".into());
     let direct_url = db("bench_direct");
     let port = free_port();
     let a: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
     let node = Proc::spawn(
         "direct",
-        common_env(Command::new(BIN).args(["serve", "--store", &direct_url, "--workers", "1"]))
+        common_env(Command::new(BIN).args(["serve", "--store", &direct_url, "--workers", &slots]))
+            .env("SHAPESEEK_HEAVY_SHARE", "1")
+            .env("SHAPESEEK_HEAVY_NICE", "0")
             .args(["--addr", &a.to_string()]),
         tmp.join("direct.log"),
     );
@@ -910,7 +917,7 @@ fn queue_overhead() {
             "--queue",
             &nats_url,
             "--jobs",
-            "1",
+            &slots,
         ])),
         tmp.join("worker.log"),
     );
@@ -918,11 +925,11 @@ fn queue_overhead() {
     drop(w);
     drop(node);
     println!(
-        "FIGURE direct n={n}: {direct:.2} s, {:.3} shapes/s",
+        "FIGURE direct ({slots} analysis slots) n={n}: {direct:.2} s, {:.3} shapes/s",
         n as f64 / direct
     );
     println!(
-        "FIGURE queued (1 worker, --jobs 1) n={n}: {queued:.2} s, {:.3} shapes/s",
+        "FIGURE queued (1 worker, --jobs {slots}) n={n}: {queued:.2} s, {:.3} shapes/s",
         n as f64 / queued
     );
     println!(
