@@ -27,64 +27,16 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
+#[path = "common/engines.rs"]
+mod engines;
+
+use engines::{free_port, nats_bin, pg_bin_dir, PrivatePg};
+
 const BIN: &str = env!("CARGO_BIN_EXE_shapeseek");
 
 // ---------------------------------------------------------------------------------------------
 // Engines
 // ---------------------------------------------------------------------------------------------
-
-fn pg_bin_dir() -> Option<PathBuf> {
-    if let Ok(d) = std::env::var("SHAPESEEK_PG_BIN") {
-        return Some(PathBuf::from(d));
-    }
-    let mut versions: Vec<(u32, PathBuf)> = std::fs::read_dir("/usr/lib/postgresql")
-        .into_iter()
-        .flatten()
-        .flatten()
-        .filter_map(|e| {
-            let v = e.file_name().to_string_lossy().parse::<u32>().ok()?;
-            let bin = e.path().join("bin");
-            bin.join("initdb").exists().then_some((v, bin))
-        })
-        .collect();
-    versions.sort();
-    if let Some((_, bin)) = versions.pop() {
-        return Some(bin);
-    }
-    on_path("initdb").and_then(|p| p.parent().map(Path::to_path_buf))
-}
-
-fn on_path(name: &str) -> Option<PathBuf> {
-    std::env::var_os("PATH").and_then(|p| {
-        std::env::split_paths(&p)
-            .map(|d| d.join(name))
-            .find(|f| f.exists())
-    })
-}
-
-fn nats_bin() -> Option<PathBuf> {
-    on_path("nats-server").or_else(|| {
-        ["/usr/sbin/nats-server", "/usr/bin/nats-server"]
-            .iter()
-            .map(PathBuf::from)
-            .find(|p| p.exists())
-    })
-}
-
-fn is_root() -> bool {
-    Command::new("id")
-        .arg("-u")
-        .output()
-        .map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
-        .unwrap_or(false)
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("a free port")
-}
 
 /// A private `nats-server -js` on a free port with its store under `tmp/nats`, once it accepts
 /// connections (at most 20 s), and its URL.
@@ -110,84 +62,23 @@ fn start_nats(nats: &Path, tmp: &Path) -> (Proc, String) {
     (proc, format!("nats://127.0.0.1:{port}"))
 }
 
-/// A private PostgreSQL, stopped (immediately) and removed on drop.
+/// A private PostgreSQL under `tmp/pg`, stopped (immediately) on drop.
 struct Pg {
-    dir: PathBuf,
-    bin: PathBuf,
-    root: bool,
+    pg: PrivatePg,
     url: String,
-}
-
-fn as_pg_user(root: bool, cmd: &Path) -> Command {
-    if root {
-        let mut c = Command::new("runuser");
-        c.args(["-u", "postgres", "--"]).arg(cmd);
-        c
-    } else {
-        Command::new(cmd)
-    }
 }
 
 impl Pg {
     fn start(bin: &Path, tmp: &Path) -> Pg {
-        let root = is_root();
-        let dir = tmp.join("pg");
-        std::fs::create_dir_all(&dir).unwrap();
-        if root {
-            assert!(Command::new("chown")
-                .args(["-R", "postgres:"])
-                .arg(&dir)
-                .status()
-                .unwrap()
-                .success());
-        }
-        let data = dir.join("data");
-        let out = as_pg_user(root, &bin.join("initdb"))
-            .arg("-D")
-            .arg(&data)
-            .args(["-U", "postgres", "-A", "trust", "-E", "UTF8", "--no-locale"])
-            .args(["--no-sync"])
-            .output()
-            .expect("initdb");
-        assert!(
-            out.status.success(),
-            "initdb: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let port = free_port();
-        let opts = format!(
-            "-p {port} -k {} -c listen_addresses=127.0.0.1 -c max_connections=200",
-            dir.display()
-        );
-        let out = as_pg_user(root, &bin.join("pg_ctl"))
-            .arg("-D")
-            .arg(&data)
-            .arg("-l")
-            .arg(dir.join("log"))
-            .args(["-w", "-t", "60", "-o", &opts, "start"])
-            .output()
-            .expect("pg_ctl");
-        assert!(
-            out.status.success(),
-            "pg_ctl start: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        Pg {
-            dir,
-            bin: bin.to_path_buf(),
-            root,
-            url: format!("postgres://postgres@127.0.0.1:{port}/postgres"),
-        }
+        let pg = PrivatePg::start(bin, &tmp.join("pg")).unwrap_or_else(|e| panic!("{e}"));
+        let url = format!("{}/postgres", pg.base_url());
+        Pg { pg, url }
     }
 }
 
 impl Drop for Pg {
     fn drop(&mut self) {
-        let _ = as_pg_user(self.root, &self.bin.join("pg_ctl"))
-            .arg("-D")
-            .arg(self.dir.join("data"))
-            .args(["-m", "immediate", "stop"])
-            .output();
+        self.pg.stop();
     }
 }
 

@@ -12,6 +12,10 @@
 //! Insert throughput figures: `cargo test --release --test postgres insert_throughput --
 //! --ignored --nocapture` (see `docs/scale-out.md`).
 
+#[path = "common/engines.rs"]
+mod engines;
+
+use engines::{pg_bin_dir, PrivatePg};
 use sha2::{Digest, Sha256};
 use shapeseek::index::store::ShapeRecord;
 use shapeseek::mesh::prepare::PrepareReport;
@@ -20,7 +24,7 @@ use shapeseek::storage::postgres::{migrate_url, PoolOptions};
 use shapeseek::storage::{
     for_each_signature, Backend, InsertOutcome, NewShape, PgStore, ShapeStore, SledStorage,
 };
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, OnceLock};
@@ -38,135 +42,19 @@ struct PgServer {
     origin: String,
 }
 
-/// Directory of `initdb`/`pg_ctl`: `SHAPESEEK_PG_BIN`, the newest `/usr/lib/postgresql/*/bin`,
-/// or PATH.
-fn pg_bin_dir() -> Option<PathBuf> {
-    if let Ok(d) = std::env::var("SHAPESEEK_PG_BIN") {
-        return Some(PathBuf::from(d));
-    }
-    let mut versions: Vec<(u32, PathBuf)> = std::fs::read_dir("/usr/lib/postgresql")
-        .into_iter()
-        .flatten()
-        .flatten()
-        .filter_map(|e| {
-            let v = e.file_name().to_string_lossy().parse::<u32>().ok()?;
-            let bin = e.path().join("bin");
-            bin.join("initdb").exists().then_some((v, bin))
-        })
-        .collect();
-    versions.sort();
-    if let Some((_, bin)) = versions.pop() {
-        return Some(bin);
-    }
-    std::env::var_os("PATH").and_then(|p| {
-        std::env::split_paths(&p).find(|d| d.join("initdb").exists() && d.join("pg_ctl").exists())
-    })
-}
-
-fn is_root() -> bool {
-    Command::new("id")
-        .arg("-u")
-        .output()
-        .map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
-        .unwrap_or(false)
-}
-
-/// `cmd` as a Command, run as `postgres` via runuser when we are root (initdb refuses root).
-fn as_pg_user(root: bool, cmd: &Path) -> Command {
-    if root {
-        let mut c = Command::new("runuser");
-        c.args(["-u", "postgres", "--"]).arg(cmd);
-        c
-    } else {
-        Command::new(cmd)
-    }
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("a free port on 127.0.0.1")
-}
-
-/// Starts a private instance; Err says why not.
+/// Starts a private instance that lives as long as this test process; Err says why not.
 fn start_private(bin: &Path) -> Result<PgServer, String> {
-    let root = is_root();
     let dir = tempfile::Builder::new()
         .prefix("shapeseek-pg-")
         .tempdir()
         .map_err(|e| format!("temp dir: {e}"))?
         .keep();
-    let data = dir.join("data");
-    if root {
-        let st = Command::new("chown")
-            .args(["-R", "postgres:"])
-            .arg(&dir)
-            .status()
-            .map_err(|e| format!("chown: {e}"))?;
-        if !st.success() {
-            return Err("chown of the temp dir to postgres failed".into());
-        }
-    }
-    let out = as_pg_user(root, &bin.join("initdb"))
-        .arg("-D")
-        .arg(&data)
-        .args([
-            "-U",
-            "postgres",
-            "-A",
-            "trust",
-            "-E",
-            "UTF8",
-            "--no-locale",
-            "--no-sync",
-        ])
-        .output()
-        .map_err(|e| format!("initdb: {e}"))?;
-    if !out.status.success() {
-        return Err(format!(
-            "initdb failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-        ));
-    }
-    let port = free_port();
-    let opts = format!(
-        "-p {port} -k {} -c listen_addresses=127.0.0.1 -c max_connections=200",
-        dir.display()
-    );
-    let out = as_pg_user(root, &bin.join("pg_ctl"))
-        .arg("-D")
-        .arg(&data)
-        .arg("-l")
-        .arg(dir.join("log"))
-        .args(["-w", "-t", "60", "-o", &opts, "start"])
-        .output()
-        .map_err(|e| format!("pg_ctl: {e}"))?;
-    if !out.status.success() {
-        let log = std::fs::read_to_string(dir.join("log")).unwrap_or_default();
-        return Err(format!(
-            "pg_ctl start failed: {}{log}",
-            String::from_utf8_lossy(&out.stderr)
-        ));
-    }
+    let pg = PrivatePg::start(bin, &dir)?;
     // Stop the instance and remove its directory once this test process is gone.
-    let pg_ctl = bin.join("pg_ctl");
-    let stop = if root {
-        format!(
-            "runuser -u postgres -- '{}' -D '{}' -m immediate stop",
-            pg_ctl.display(),
-            data.display()
-        )
-    } else {
-        format!(
-            "'{}' -D '{}' -m immediate stop",
-            pg_ctl.display(),
-            data.display()
-        )
-    };
     let script = format!(
         "while kill -0 {pid} 2>/dev/null; do sleep 1; done; {stop} >/dev/null 2>&1; rm -rf '{dir}'",
         pid = std::process::id(),
+        stop = pg.stop_shell(),
         dir = dir.display()
     );
     Command::new("sh")
@@ -177,8 +65,8 @@ fn start_private(bin: &Path) -> Result<PgServer, String> {
         .spawn()
         .map_err(|e| format!("watchdog: {e}"))?;
     Ok(PgServer {
-        base: format!("postgres://postgres@127.0.0.1:{port}"),
-        origin: format!("private instance on port {port} in {}", dir.display()),
+        base: pg.base_url(),
+        origin: format!("private instance on port {} in {}", pg.port, dir.display()),
     })
 }
 
