@@ -50,7 +50,9 @@ impl App {
             retry_after: cfg.retry_after_secs,
             request_timeout: std::time::Duration::from_secs_f64(cfg.request_timeout_secs),
         })?;
+        let shard = cfg.shard_spec().map(super::shard::Sharding::new);
         let app = App {
+            shard,
             admission,
             cfg,
             store,
@@ -174,6 +176,14 @@ impl App {
                 self.commit_calibration(lock, epoch, on, &cal)?;
                 (cal, on)
             }
+        };
+        // A sharded node calibrates on the whole corpus (above) and keeps its shard's shapes.
+        let shapes = match self.shard() {
+            Some(sh) => {
+                sh.set_total(shapes.len());
+                shapes.into_iter().filter(|r| sh.spec.holds(&r.0)).collect()
+            }
+            None => shapes,
         };
         Ok(ScanIndex::build(Arc::new(cal), on, shapes))
     }
