@@ -330,7 +330,11 @@ fn common_env(cmd: &mut Command) -> &mut Command {
         .env("SHAPESEEK_RECALIBRATE_FRACTION", "0")
         .env("SHAPESEEK_QUEUE_ACK_WAIT_SECS", "2")
         .env("SHAPESEEK_QUEUE_MAX_DELIVER", "5")
-        .env("SHAPESEEK_RECONCILE_SECS", "1")
+        .env(
+            "SHAPESEEK_RECONCILE_SECS",
+            // A measurement over a large corpus reconciles less often (`shard_search_latency`).
+            std::env::var("SHAPESEEK_CLUSTER_RECONCILE_SECS").unwrap_or_else(|_| "1".into()),
+        )
         // A shard node that is down is reported after 2 s (sharded searches only).
         .env("SHAPESEEK_SHARD_TIMEOUT_SECS", "2")
         .env("SHAPESEEK_SHUTDOWN_GRACE_SECS", "1")
@@ -1008,6 +1012,159 @@ fn two_shards_answer_as_one_sled_node() {
         "shards: after the restart {searches} searches equal again ({:.1} s in all)",
         t0.elapsed().as_secs_f64()
     );
+}
+
+/// Search latency through one node holding the whole corpus against a sharded coordinator
+/// (2 shard nodes on the same machine), over synthetic signatures put into PostgreSQL by
+/// `shapeseek bench populate --store`; also checks that both answer the same hits:
+///
+/// `SHAPESEEK_CLUSTER_EIGENPAIRS=100 SHAPESEEK_CLUSTER_RECONCILE_SECS=600
+/// SHAPESEEK_SHARD_BENCH_N=100000 cargo test --release --test cluster shard_search_latency --
+/// --ignored --nocapture` (`SHAPESEEK_SHARD_BENCH_QUERIES`, default 50).
+#[test]
+#[ignore = "measurement (docs/scale-out.md)"]
+fn shard_search_latency() {
+    let (Some(pg_bin), Some(nats)) = (pg_bin_dir(), nats_bin()) else {
+        println!("SKIPPED: shard_search_latency: PostgreSQL or nats-server not found");
+        return;
+    };
+    assert_eq!(
+        std::env::var("SHAPESEEK_CLUSTER_EIGENPAIRS").as_deref(),
+        Ok("100"),
+        "the populated signatures are the product spec's: run with SHAPESEEK_CLUSTER_EIGENPAIRS=100"
+    );
+    let env_n = |k: &str, d: usize| {
+        std::env::var(k)
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(d)
+    };
+    let n = env_n("SHAPESEEK_SHARD_BENCH_N", 100_000);
+    let queries = env_n("SHAPESEEK_SHARD_BENCH_QUERIES", 50);
+    let tmp = tempfile::Builder::new()
+        .prefix("shapeseek-shardbench-")
+        .tempdir()
+        .unwrap();
+    let tmp = tmp.path();
+    let pg = Pg::start(&pg_bin, tmp);
+    let (_nats, nats_url) = start_nats(&nats, tmp);
+    assert!(Command::new(BIN)
+        .args(["migrate", "--store", &pg.url])
+        .output()
+        .unwrap()
+        .status
+        .success());
+    let t = Instant::now();
+    let out = Command::new(BIN)
+        .args([
+            "bench",
+            "populate",
+            "--store",
+            &pg.url,
+            "--count",
+            &n.to_string(),
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    println!(
+        "FIGURE populate n={n}: {:.1} s into PostgreSQL",
+        t.elapsed().as_secs_f64()
+    );
+
+    // Stored shapes to query with, spread over the id range.
+    let load = |name: &str, extra: &[&str]| {
+        let t = Instant::now();
+        let (p, a) = serve_node_with(name, tmp, &pg.url, &nats_url, extra);
+        println!(
+            "FIGURE {name} loaded in {:.1} s: {}",
+            t.elapsed().as_secs_f64(),
+            index(a)["shapes"]
+        );
+        (p, a)
+    };
+    let bodies = |ids: &[String]| -> Vec<String> {
+        ids.iter()
+            .flat_map(|id| {
+                [
+                    serde_json::json!({"id": id, "top_k": 10, "rerank": []}).to_string(),
+                    serde_json::json!({"id": id, "top_k": 10}).to_string(),
+                ]
+            })
+            .collect()
+    };
+    let measure = |what: &str, a: SocketAddr, bodies: &[String]| -> Vec<Vec<(String, u64)>> {
+        for b in bodies.iter().take(4) {
+            http(a, "POST", "/v1/search", b.as_bytes()).unwrap();
+        }
+        let mut out = Vec::new();
+        for (kind, skip) in [("scan only", 0), ("default stages", 1)] {
+            let mut ms = Vec::new();
+            for b in bodies.iter().skip(skip).step_by(2) {
+                let t = Instant::now();
+                let r = http(a, "POST", "/v1/search", b.as_bytes()).unwrap();
+                ms.push(t.elapsed().as_secs_f64() * 1e3);
+                assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+                let v = r.json();
+                out.push(
+                    v["hits"]
+                        .as_array()
+                        .unwrap()
+                        .iter()
+                        .map(|h| {
+                            (
+                                h["id"].as_str().unwrap().to_string(),
+                                h["score"].as_f64().unwrap().to_bits(),
+                            )
+                        })
+                        .collect(),
+                );
+            }
+            ms.sort_by(f64::total_cmp);
+            let q = |p: f64| ms[((ms.len() - 1) as f64 * p).round() as usize];
+            println!(
+                "FIGURE search n={n} {what}, {kind}: p50 {:.2} ms, p90 {:.2} ms, max {:.2} ms ({} queries)",
+                q(0.5),
+                q(0.9),
+                ms[ms.len() - 1],
+                ms.len()
+            );
+        }
+        out
+    };
+
+    let (whole, a) = load("whole", &[]);
+    let mut ids = Vec::new();
+    let mut cursor: Option<String> = None;
+    while ids.len() < n {
+        let path = match &cursor {
+            Some(c) => format!("/v1/shapes?limit=1000&cursor={c}"),
+            None => "/v1/shapes?limit=1000".into(),
+        };
+        let v = http(a, "GET", &path, b"").unwrap().json();
+        ids.extend(
+            v["items"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|it| it["id"].as_str().unwrap().to_string()),
+        );
+        match v["next_cursor"].as_str() {
+            Some(c) => cursor = Some(c.to_string()),
+            None => break,
+        }
+    }
+    let step = (ids.len() / queries).max(1);
+    let picked: Vec<String> = ids.iter().step_by(step).take(queries).cloned().collect();
+    let bodies = bodies(&picked);
+    let want = measure("one node (whole corpus)", a, &bodies);
+    drop(whole);
+    let (s0, a0) = load("shard0", &["--shard", "0/2"]);
+    let (s1, _a1) = load("shard1", &["--shard", "1/2"]);
+    let got = measure("2 shards (coordinator = shard 0)", a0, &bodies);
+    assert_eq!(got, want, "the shards answer as the whole node");
+    drop(s1);
+    drop(s0);
 }
 
 /// Uploads every mesh from `clients` threads to `addr` (retrying 503s); returns seconds.
