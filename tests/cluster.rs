@@ -243,6 +243,8 @@ impl Drop for Proc {
 struct Resp {
     status: u16,
     body: Vec<u8>,
+    /// The status line and headers.
+    head: String,
 }
 
 impl Resp {
@@ -300,7 +302,7 @@ fn http(addr: SocketAddr, method: &str, path: &str, body: &[u8]) -> Result<Resp,
         }
         body = out;
     }
-    Ok(Resp { status, body })
+    Ok(Resp { status, body, head })
 }
 
 fn wait_ready(addr: SocketAddr, proc_: &Proc) {
@@ -771,7 +773,13 @@ fn search_named(
     let r = http(addr, "POST", path, body).map_err(|e| (0, e))?;
     let v = r.json();
     if r.status != 200 {
-        return Err((r.status, v["code"].as_str().unwrap_or_default().to_string()));
+        // A 503 must say when to retry.
+        let retry = r.head.to_ascii_lowercase().contains("\r\nretry-after:");
+        let code = v["code"].as_str().unwrap_or_default();
+        return Err((
+            r.status,
+            format!("{code}{}", if retry { " (Retry-After)" } else { "" }),
+        ));
     }
     Ok(v["hits"]
         .as_array()
@@ -996,12 +1004,18 @@ fn two_shards_answer_as_one_sled_node() {
     let body = search_bodies(&ids[0], false)[0].clone();
     let t = Instant::now();
     let err = search_named(a0, "/v1/search", body.as_bytes(), &name_of).unwrap_err();
-    assert_eq!(err, (503, "search.shard_unavailable".to_string()));
+    assert_eq!(
+        err,
+        (503, "search.shard_unavailable (Retry-After)".to_string())
+    );
     assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
     let (_, bytes) = &meshes[0];
     let path = format!("/v1/search?top_k=10&format={}", ext_of(&meshes[0].0));
     let err = search_named(a0, &path, bytes, &name_of).unwrap_err();
-    assert_eq!(err.0, 503, "{err:?}");
+    assert_eq!(
+        err,
+        (503, "search.shard_unavailable (Retry-After)".to_string())
+    );
     eprintln!("shards: shard 1 killed → 503 search.shard_unavailable");
 
     // Started again, it loads its part from the store and the answers are equal again.
