@@ -677,6 +677,37 @@ mod tests {
     }
 
     #[test]
+    fn a_shard_needs_a_postgres_store_and_a_queue() {
+        use crate::server::ServerConfig;
+        let cfg = |shard: &str, store: &str, queue: &str| ServerConfig {
+            shard: shard.into(),
+            store: store.into(),
+            queue: queue.into(),
+            ..ServerConfig::default()
+        };
+        let (pg, nats) = ("postgres://u@h/db", "nats://h:4222");
+        assert!(cfg("", "", "").validate().is_ok());
+        assert_eq!(cfg("", "", "").shard_spec(), None);
+        let ok = cfg("1/2", pg, nats);
+        assert!(ok.validate().is_ok());
+        assert_eq!(ok.shard_spec(), Some(ShardSpec { index: 1, count: 2 }));
+        for (shard, store, queue) in [
+            ("0/2", "", ""),
+            ("0/2", pg, ""),
+            ("0/2", "", nats),
+            ("2/2", pg, nats),
+            ("x", pg, nats),
+        ] {
+            let e = cfg(shard, store, queue).validate().unwrap_err().to_string();
+            // (a queue without a store is refused by the queue's own check first)
+            assert!(
+                e.contains("shard") || e.contains("queue needs"),
+                "{shard} {store} {queue}: {e}"
+            );
+        }
+    }
+
+    #[test]
     fn position_order_is_id_order() {
         let ids = ids();
         let mut by_string = ids.clone();
