@@ -80,8 +80,12 @@ struct SearchBench {
 #[derive(Args)]
 struct PopulateBench {
     /// Server data directory (created; shapes are added to what it holds).
+    #[arg(long, required_unless_present = "store", conflicts_with = "store")]
+    data: Option<PathBuf>,
+    /// A migrated PostgreSQL database (`postgres://…`) to add the shapes to instead (8
+    /// concurrent single-shape transactions through the store's own `insert`).
     #[arg(long)]
-    data: PathBuf,
+    store: Option<String>,
     /// Number of synthetic shapes: copies of 24 generated shapes' signatures, each copy's
     /// distances scaled by its own factor in [0.95, 1.05]; the stored original of each is a
     /// 12-vertex OBJ with a unique comment (tagged `synthetic`).
@@ -721,59 +725,101 @@ fn run_search(b: &SearchBench) -> Result<()> {
     Ok(())
 }
 
+/// What every synthetic shape shares: the base signatures and payloads, the tiny original.
+struct Synthetic {
+    engine: shapeseek::index::Engine,
+    bases: Vec<(Signature, Option<shapeseek::rerank::GwPayload>)>,
+    payloads: Vec<Option<Vec<u8>>>,
+    obj: Vec<u8>,
+    vertices: usize,
+    faces: usize,
+    area: f64,
+    report: shapeseek::mesh::prepare::PrepareReport,
+}
+
+impl Synthetic {
+    fn new(payloads: bool) -> Result<Synthetic> {
+        use shapeseek::mesh::write::write_obj;
+        let engine = shapeseek::index::Engine::new();
+        let bases = synthetic_bases(&engine.config.signature, payloads)?;
+        let payloads = bases
+            .iter()
+            .map(|(_, p)| p.as_ref().map(|p| p.to_bytes()))
+            .collect();
+        let tiny = generate::icosphere(0);
+        let (_, report) = prepare(&tiny, &PrepareOptions::default())?;
+        let mut obj = Vec::new();
+        write_obj(&tiny, &mut obj)?;
+        Ok(Synthetic {
+            engine,
+            bases,
+            payloads,
+            obj,
+            vertices: tiny.vertices.len(),
+            faces: tiny.faces.len(),
+            area: tiny.area(),
+            report,
+        })
+    }
+
+    /// Synthetic shape `i` under the id `id`.
+    fn shape(&self, i: usize, id: String) -> shapeseek::storage::NewShape {
+        use sha2::{Digest, Sha256};
+        use shapeseek::index::store::{now_unix_ms, ShapeRecord};
+        let sig = &synthetic_signature(&self.bases, i, 0.05);
+        let mut original = format!("# shapeseek synthetic shape {i}\n").into_bytes();
+        original.extend_from_slice(&self.obj);
+        let sha256: [u8; 32] = Sha256::digest(&original).into();
+        shapeseek::storage::NewShape {
+            record: ShapeRecord {
+                name: format!("synthetic-{i:06}"),
+                tags: vec!["synthetic".into(), format!("base{}", i % SYNTHETIC_BASES)],
+                id,
+                format: "obj".into(),
+                content_type: "model/obj".into(),
+                bytes: original.len() as u64,
+                vertices: self.vertices,
+                faces: self.faces,
+                area: self.area,
+                sha256: hex::encode(sha256),
+                created_unix_ms: now_unix_ms(),
+                prepare: self.report.clone(),
+                spec_key: self.engine.spec_key(),
+            },
+            sha256,
+            signature: self.engine.encode_signature(sig),
+            original,
+            // With `--payloads`, a base shape's payload, else none (a spectral-GW stage then
+            // ranks these after shapes that have one). The payload's base is decoupled from
+            // the signature's (`i / 24` vs `i % 24`), so that a shortlist of same-signature
+            // shapes holds different payloads: identical metric spaces would make the GW
+            // solves unrealistically cheap.
+            payload: self.payloads[(i / SYNTHETIC_BASES) % SYNTHETIC_BASES].clone(),
+        }
+    }
+}
+
 fn run_populate(b: &PopulateBench) -> Result<()> {
-    use sha2::{Digest, Sha256};
-    use shapeseek::index::store::{now_unix_ms, BatchItem, ShapeRecord, Store};
-    use shapeseek::index::Engine;
-    use shapeseek::mesh::write::write_obj;
-    let engine = Engine::new();
-    let store = Store::open(&b.data)?;
+    use shapeseek::index::store::{BatchItem, Store};
     let t0 = Instant::now();
-    let bases = synthetic_bases(&engine.config.signature, b.payloads)?;
-    let payloads: Vec<Option<Vec<u8>>> = bases
-        .iter()
-        .map(|(_, p)| p.as_ref().map(|p| p.to_bytes()))
-        .collect();
-    let tiny = generate::icosphere(0);
-    let (_, report) = prepare(&tiny, &PrepareOptions::default())?;
-    let mut obj = Vec::new();
-    write_obj(&tiny, &mut obj)?;
-    let spec_key = engine.spec_key();
+    let syn = Synthetic::new(b.payloads)?;
+    if let Some(url) = &b.store {
+        return populate_store(b, url, syn, t0);
+    }
+    let data = b.data.as_ref().expect("--data or --store");
+    let store = Store::open(data)?;
     let mut written = 0usize;
     while written < b.count {
         let chunk = (b.count - written).min(5000);
         let mut items = Vec::with_capacity(chunk);
         for i in written..written + chunk {
-            let sig = &synthetic_signature(&bases, i, 0.05);
-            let mut original = format!("# shapeseek synthetic shape {i}\n").into_bytes();
-            original.extend_from_slice(&obj);
-            let sha256: [u8; 32] = Sha256::digest(&original).into();
-            let id = store.new_id()?;
+            let s = syn.shape(i, store.new_id()?);
             items.push(BatchItem {
-                record: ShapeRecord {
-                    name: format!("synthetic-{i:06}"),
-                    tags: vec!["synthetic".into(), format!("base{}", i % SYNTHETIC_BASES)],
-                    id,
-                    format: "obj".into(),
-                    content_type: "model/obj".into(),
-                    bytes: original.len() as u64,
-                    vertices: tiny.vertices.len(),
-                    faces: tiny.faces.len(),
-                    area: tiny.area(),
-                    sha256: hex::encode(sha256),
-                    created_unix_ms: now_unix_ms(),
-                    prepare: report.clone(),
-                    spec_key: spec_key.clone(),
-                },
-                sha256,
-                signature: engine.encode_signature(sig),
-                original,
-                // With `--payloads`, a base shape's payload, else none (a spectral-GW stage then
-                // ranks these after shapes that have one). The payload's base is decoupled from
-                // the signature's (`i / 24` vs `i % 24`), so that a shortlist of same-signature
-                // shapes holds different payloads: identical metric spaces would make the GW
-                // solves unrealistically cheap.
-                payload: payloads[(i / SYNTHETIC_BASES) % SYNTHETIC_BASES].clone(),
+                record: s.record,
+                sha256: s.sha256,
+                signature: s.signature,
+                original: s.original,
+                payload: s.payload,
             });
         }
         store.insert_batch(&items)?;
@@ -784,9 +830,52 @@ fn run_populate(b: &PopulateBench) -> Result<()> {
     println!(
         "{} synthetic shapes written to {} in {:.1} s ({} shapes now)",
         b.count,
-        b.data.display(),
+        data.display(),
         t0.elapsed().as_secs_f64(),
         store.len()
+    );
+    Ok(())
+}
+
+/// `bench populate --store postgres://…`: the same shapes through [`shapeseek::storage`]'s
+/// `insert`, 8 at a time.
+fn populate_store(b: &PopulateBench, url: &str, syn: Synthetic, t0: Instant) -> Result<()> {
+    const WRITERS: usize = 8;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    let count = b.count;
+    let n = rt.block_on(async move {
+        let store = shapeseek::storage::open(url).await?;
+        let syn = std::sync::Arc::new(syn);
+        let done = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let tasks: Vec<_> = (0..WRITERS)
+            .map(|w| {
+                let (store, syn, done) = (store.clone(), syn.clone(), done.clone());
+                tokio::spawn(async move {
+                    for i in (w..count).step_by(WRITERS) {
+                        let id = store.new_id().await?;
+                        let shape = syn.shape(i, id);
+                        store.insert(shape).await?;
+                        let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                        if d % 1000 == 0 {
+                            eprint!("\rwritten {d}/{count}");
+                        }
+                    }
+                    Ok::<(), Error>(())
+                })
+            })
+            .collect();
+        for t in tasks {
+            t.await
+                .map_err(|e| Error::Io(std::io::Error::other(e.to_string())))??;
+        }
+        store.count().await
+    })?;
+    eprintln!();
+    println!(
+        "{count} synthetic shapes written to {url} in {:.1} s ({n} shapes now)",
+        t0.elapsed().as_secs_f64()
     );
     Ok(())
 }

@@ -134,6 +134,8 @@ impl Drop for Proc {
 struct Resp {
     status: u16,
     body: Vec<u8>,
+    /// The status line and headers.
+    head: String,
 }
 
 impl Resp {
@@ -147,7 +149,9 @@ fn http(addr: SocketAddr, method: &str, path: &str, body: &[u8]) -> Result<Resp,
     let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5))
         .map_err(|e| format!("connect {addr}: {e}"))?;
     s.set_read_timeout(Some(Duration::from_secs(180))).ok();
-    let ctype = if method == "POST" && path.starts_with("/v1/search") {
+    // A JSON search by id; a search by upload sends the mesh as it is.
+    let ctype = if method == "POST" && path.starts_with("/v1/search") && body.first() == Some(&b'{')
+    {
         "application/json"
     } else {
         "application/octet-stream"
@@ -189,7 +193,7 @@ fn http(addr: SocketAddr, method: &str, path: &str, body: &[u8]) -> Result<Resp,
         }
         body = out;
     }
-    Ok(Resp { status, body })
+    Ok(Resp { status, body, head })
 }
 
 fn wait_ready(addr: SocketAddr, proc_: &Proc) {
@@ -219,7 +223,13 @@ fn common_env(cmd: &mut Command) -> &mut Command {
         .env("SHAPESEEK_RECALIBRATE_FRACTION", "0")
         .env("SHAPESEEK_QUEUE_ACK_WAIT_SECS", "2")
         .env("SHAPESEEK_QUEUE_MAX_DELIVER", "5")
-        .env("SHAPESEEK_RECONCILE_SECS", "1")
+        .env(
+            "SHAPESEEK_RECONCILE_SECS",
+            // A measurement over a large corpus reconciles less often (`shard_search_latency`).
+            std::env::var("SHAPESEEK_CLUSTER_RECONCILE_SECS").unwrap_or_else(|_| "1".into()),
+        )
+        // A shard node that is down is reported after 2 s (sharded searches only).
+        .env("SHAPESEEK_SHARD_TIMEOUT_SECS", "2")
         .env("SHAPESEEK_SHUTDOWN_GRACE_SECS", "1")
         .env(
             "RUST_LOG",
@@ -228,21 +238,36 @@ fn common_env(cmd: &mut Command) -> &mut Command {
 }
 
 fn serve_node(name: &str, tmp: &Path, pg: &str, nats: &str) -> (Proc, SocketAddr) {
+    serve_node_with(name, tmp, pg, nats, &[])
+}
+
+/// [`serve_node`] with `extra` flags (e.g. `--shard 0/2`).
+fn serve_node_with(
+    name: &str,
+    tmp: &Path,
+    pg: &str,
+    nats: &str,
+    extra: &[&str],
+) -> (Proc, SocketAddr) {
     let port = free_port();
     let addr: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
     let p = Proc::spawn(
         name,
-        common_env(Command::new(BIN).args([
-            "serve",
-            "--store",
-            pg,
-            "--queue",
-            nats,
-            "--workers",
-            "1",
-            "--addr",
-            &addr.to_string(),
-        ])),
+        common_env(
+            Command::new(BIN)
+                .args([
+                    "serve",
+                    "--store",
+                    pg,
+                    "--queue",
+                    nats,
+                    "--workers",
+                    "1",
+                    "--addr",
+                    &addr.to_string(),
+                ])
+                .args(extra),
+        ),
         tmp.join(format!("{name}.log")),
     );
     wait_ready(addr, &p);
@@ -436,6 +461,46 @@ fn workers_pull_queued_jobs_without_stalls() {
             t.elapsed().as_secs_f64()
         );
     });
+}
+
+/// A single sled node over the same uploads (`ids` of a cluster, uploaded in id order, so its
+/// ids are in the same order), settled: its process, address and the name of each of its ids.
+fn sled_reference(
+    tmp: &Path,
+    ids: &[String],
+    name_of: &std::collections::HashMap<String, String>,
+    meshes: &[(String, Vec<u8>)],
+) -> (Proc, SocketAddr, std::collections::HashMap<String, String>) {
+    let n = ids.len();
+    let sled_dir = tmp.join("sled");
+    let port = free_port();
+    let sa: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    let sled = Proc::spawn(
+        "sled",
+        common_env(Command::new(BIN).args(["serve", "--workers", "2", "--addr"]))
+            .arg(sa.to_string())
+            .arg("--data")
+            .arg(&sled_dir),
+        tmp.join("sled.log"),
+    );
+    wait_ready(sa, &sled);
+    let bytes_of: std::collections::HashMap<&str, &Vec<u8>> =
+        meshes.iter().map(|(nm, b)| (nm.as_str(), b)).collect();
+    let mut sled_name = std::collections::HashMap::new();
+    for id in ids {
+        let name = &name_of[id];
+        let r = http(
+            sa,
+            "POST",
+            &format!("/v1/shapes?name={name}"),
+            bytes_of[name.as_str()],
+        )
+        .unwrap();
+        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+        sled_name.insert(r.json()["id"].as_str().unwrap().to_string(), name.clone());
+    }
+    wait_settled(&[sa], n, "sled", &[&sled]);
+    (sled, sa, sled_name)
 }
 
 #[test]
@@ -652,34 +717,7 @@ fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
     drop(node1);
 
     // A single sled node over the same uploads, in the cluster's id order.
-    let sled_dir = tmp.join("sled");
-    let port = free_port();
-    let sa: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
-    let sled = Proc::spawn(
-        "sled",
-        common_env(Command::new(BIN).args(["serve", "--workers", "2", "--addr"]))
-            .arg(sa.to_string())
-            .arg("--data")
-            .arg(&sled_dir),
-        tmp.join("sled.log"),
-    );
-    wait_ready(sa, &sled);
-    let bytes_of: std::collections::HashMap<&str, &Vec<u8>> =
-        meshes.iter().map(|(nm, b)| (nm.as_str(), b)).collect();
-    let mut sled_name = std::collections::HashMap::new();
-    for id in &ids {
-        let name = &name_of[id];
-        let r = http(
-            sa,
-            "POST",
-            &format!("/v1/shapes?name={name}"),
-            bytes_of[name.as_str()],
-        )
-        .unwrap();
-        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
-        sled_name.insert(r.json()["id"].as_str().unwrap().to_string(), name.clone());
-    }
-    wait_settled(&[sa], n, "sled", &[&sled]);
+    let (_sled, sa, sled_name) = sled_reference(tmp, &ids, &name_of, &meshes);
     for (sid, name) in &sled_name {
         let (h, _) = hits(sa, sid);
         let named: Vec<(String, u64)> = h
@@ -692,6 +730,435 @@ fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
         );
     }
     eprintln!("cluster: {n} searches equal on both nodes and on a single sled node");
+}
+
+/// A search on `addr` (a JSON body by id, or `upload` bytes with `path`'s parameters): its hits
+/// as (name, score bits) in rank order, or the status and problem code.
+fn search_named(
+    addr: SocketAddr,
+    path: &str,
+    body: &[u8],
+    names: &std::collections::HashMap<String, String>,
+) -> Result<Vec<(String, u64)>, (u16, String)> {
+    let r = http(addr, "POST", path, body).map_err(|e| (0, e))?;
+    let v = r.json();
+    if r.status != 200 {
+        // A 503 must say when to retry.
+        let retry = r.head.to_ascii_lowercase().contains("\r\nretry-after:");
+        let code = v["code"].as_str().unwrap_or_default();
+        return Err((
+            r.status,
+            format!("{code}{}", if retry { " (Retry-After)" } else { "" }),
+        ));
+    }
+    Ok(v["hits"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|h| {
+            (
+                names[h["id"].as_str().unwrap()].clone(),
+                h["score"].as_f64().unwrap().to_bits(),
+            )
+        })
+        .collect())
+}
+
+/// The searches compared between shards and a single node, for a stored shape `id`: default
+/// stages (the scan, then reciprocal over max(200, top_k)), the scan alone, an exact stage
+/// under another dissimilarity followed by a reciprocal one, and (when `gw`) a spectral GW
+/// stage on payloads read from the store.
+fn search_bodies(id: &str, gw: bool) -> Vec<String> {
+    let mut v = vec![
+        serde_json::json!({"id": id, "top_k": 10}),
+        serde_json::json!({"id": id, "top_k": 12, "rerank": []}),
+        serde_json::json!({"id": id, "top_k": 6, "rerank": [
+            {"stage": "exact", "shortlist": 20, "spec": {"dissimilarity": "emd"}},
+            {"stage": "reciprocal", "shortlist": 15, "neighbourhoods": [4, 8]}
+        ]}),
+    ];
+    if gw {
+        v.push(serde_json::json!({"id": id, "top_k": 3, "rerank": [
+            {"stage": "spectral_gw", "shortlist": 4}
+        ]}));
+    }
+    v.into_iter().map(|b| b.to_string()).collect()
+}
+
+fn shard_of(id: &str, count: u64) -> u64 {
+    u64::from_str_radix(id, 16).unwrap() % count
+}
+
+/// Waits until each shard node holds its part of the `ids` under the whole-corpus calibration.
+fn wait_shards_settled(nodes: &[(SocketAddr, u64)], ids: &[String], procs: &[&Proc]) {
+    let n = ids.len();
+    let t = Instant::now();
+    loop {
+        let ok = nodes.iter().all(|(a, s)| {
+            let part = ids.iter().filter(|id| shard_of(id, 2) == *s).count();
+            let v = index(*a);
+            v["shapes"] == part && v["calibrated_on"] == n && v["shard"]["corpus_shapes"] == n
+        });
+        if ok {
+            return;
+        }
+        if t.elapsed() > Duration::from_secs(120) {
+            let logs: Vec<String> = procs.iter().map(|p| p.tail()).collect();
+            let idx: Vec<Value> = nodes.iter().map(|(a, _)| index(*a)).collect();
+            panic!("shards not settled at {n}: {idx:?}\n{}", logs.join("\n"));
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+/// Issue 12 item 3, shards: two shard nodes (`--shard 0/2`, `--shard 1/2`) hold half the
+/// corpus each; a search on either fans out to both over NATS and answers exactly a single sled
+/// node's hits (by name, score bits), by id and by upload, with default and explicit stages; a
+/// shard that is down makes searches 503 (never partial), and it answers again once restarted.
+#[test]
+fn two_shards_answer_as_one_sled_node() {
+    let (Some(pg_bin), Some(nats)) = (pg_bin_dir(), nats_bin()) else {
+        assert!(
+            std::env::var("CI").as_deref() != Ok("true"),
+            "shard test: PostgreSQL (initdb/pg_ctl) and nats-server are required in CI"
+        );
+        println!("SKIPPED: shard test: PostgreSQL (initdb/pg_ctl) or nats-server not found");
+        return;
+    };
+    let t0 = Instant::now();
+    let tmp = tempfile::Builder::new()
+        .prefix("shapeseek-shards-")
+        .tempdir()
+        .unwrap();
+    let tmp = tmp.path();
+    let pg = Pg::start(&pg_bin, tmp);
+    let (_nats, nats_url) = start_nats(&nats, tmp);
+    let out = Command::new(BIN)
+        .args(["migrate", "--store", &pg.url])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    // --shard needs a PostgreSQL store and a queue.
+    let out = Command::new(BIN)
+        .args(["serve", "--shard", "0/2", "--addr", "127.0.0.1:0"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("shard needs a PostgreSQL store"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    let meshes = corpus(tmp);
+    let n = meshes.len();
+    let shard_node =
+        |name: &str, s: &str| serve_node_with(name, tmp, &pg.url, &nats_url, &["--shard", s]);
+    let (s0, a0) = shard_node("shard0", "0/2");
+    let (s1, a1) = shard_node("shard1", "1/2");
+    let w1 = worker("worker1", tmp, &pg.url, &nats_url);
+    let w2 = worker("worker2", tmp, &pg.url, &nats_url);
+
+    // Queued uploads (202), alternating over the nodes; then wait for every job.
+    for (i, (name, bytes)) in meshes.iter().enumerate() {
+        let a = [a0, a1][i % 2];
+        let r = http(
+            a,
+            "POST",
+            &format!("/v1/shapes?name={name}&wait=false"),
+            bytes,
+        )
+        .unwrap();
+        assert!(
+            r.status == 202 || r.status == 201,
+            "{name}: {} {}",
+            r.status,
+            String::from_utf8_lossy(&r.body)
+        );
+    }
+    let t = Instant::now();
+    loop {
+        let done = pg_query(
+            &pg.url,
+            "SELECT count(*) FILTER (WHERE state = 'done')::text FROM jobs",
+        );
+        if done.parse::<usize>().unwrap_or(0) == n {
+            break;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(180),
+            "jobs not done: {done} of {n}\n{}\n{}",
+            w1.tail(),
+            w2.tail()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    drop(w1);
+    drop(w2);
+    let items = http(a0, "GET", "/v1/shapes?limit=1000", b"")
+        .unwrap()
+        .json();
+    let mut name_of = std::collections::HashMap::new();
+    for it in items["items"].as_array().unwrap() {
+        name_of.insert(
+            it["id"].as_str().unwrap().to_string(),
+            it["name"].as_str().unwrap().to_string(),
+        );
+    }
+    let mut ids: Vec<String> = name_of.keys().cloned().collect();
+    ids.sort();
+    assert_eq!(ids.len(), n, "every upload stored once");
+    // Each node holds only its part (both parts non-empty), under the whole-corpus calibration.
+    wait_shards_settled(&[(a0, 0), (a1, 1)], &ids, &[&s0, &s1]);
+    let parts: Vec<usize> = (0..2)
+        .map(|s| ids.iter().filter(|id| shard_of(id, 2) == s).count())
+        .collect();
+    assert!(parts[0] > 0 && parts[1] > 0, "{parts:?}");
+    eprintln!(
+        "shards: {n} shapes stored, shard 0 holds {}, shard 1 holds {} ({:.1} s)",
+        parts[0],
+        parts[1],
+        t0.elapsed().as_secs_f64()
+    );
+
+    // The reference: one sled node over the same uploads in the same id order.
+    let (sled, sa, sled_name) = sled_reference(tmp, &ids, &name_of, &meshes);
+    let sled_id: std::collections::HashMap<&str, &str> = sled_name
+        .iter()
+        .map(|(id, nm)| (nm.as_str(), id.as_str()))
+        .collect();
+    let ext_of = |name: &str| name.rsplit('.').next().unwrap().to_string();
+    let compare = |addrs: &[SocketAddr], every: usize| {
+        let mut searches = 0usize;
+        for (i, id) in ids.iter().enumerate() {
+            let name = &name_of[id];
+            let sid = sled_id[name.as_str()];
+            for (b_cluster, b_sled) in search_bodies(id, i % 10 == 0)
+                .iter()
+                .zip(search_bodies(sid, i % 10 == 0))
+            {
+                let want = search_named(sa, "/v1/search", b_sled.as_bytes(), &sled_name)
+                    .unwrap_or_else(|e| panic!("sled {b_sled}: {e:?}"));
+                assert!(!want.is_empty());
+                for &a in addrs {
+                    let got = search_named(a, "/v1/search", b_cluster.as_bytes(), &name_of)
+                        .unwrap_or_else(|e| panic!("{a} {b_cluster}: {e:?}\n{}", sled.tail()));
+                    assert_eq!(got, want, "{name} on {a}: {b_cluster}");
+                    searches += 1;
+                }
+            }
+            if i % every == 0 {
+                // By upload (default stages): the query's signature is computed once by the
+                // node that answers, its encoding sent to every shard.
+                let (_, bytes) = meshes.iter().find(|(nm, _)| nm == name).unwrap();
+                let path = format!("/v1/search?top_k=10&format={}", ext_of(name));
+                let want = search_named(sa, &path, bytes, &sled_name).unwrap();
+                for &a in addrs {
+                    let got = search_named(a, &path, bytes, &name_of).unwrap();
+                    assert_eq!(got, want, "{name} uploaded to {a}");
+                    searches += 1;
+                }
+            }
+        }
+        searches
+    };
+    let searches = compare(&[a0, a1], 6);
+    eprintln!(
+        "shards: {searches} searches on both shard nodes equal to a single sled node's ({:.1} s)",
+        t0.elapsed().as_secs_f64()
+    );
+
+    // Shard 1 down: searches answer 503 search.shard_unavailable, never a partial list.
+    let mut s1 = s1;
+    s1.kill();
+    let body = search_bodies(&ids[0], false)[0].clone();
+    let t = Instant::now();
+    let err = search_named(a0, "/v1/search", body.as_bytes(), &name_of).unwrap_err();
+    assert_eq!(
+        err,
+        (503, "search.shard_unavailable (Retry-After)".to_string())
+    );
+    assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
+    let (_, bytes) = &meshes[0];
+    let path = format!("/v1/search?top_k=10&format={}", ext_of(&meshes[0].0));
+    let err = search_named(a0, &path, bytes, &name_of).unwrap_err();
+    assert_eq!(
+        err,
+        (503, "search.shard_unavailable (Retry-After)".to_string())
+    );
+    eprintln!("shards: shard 1 killed → 503 search.shard_unavailable");
+
+    // Started again, it loads its part from the store and the answers are equal again.
+    let (s1b, a1b) = shard_node("shard1b", "1/2");
+    wait_shards_settled(&[(a0, 0), (a1b, 1)], &ids, &[&s0, &s1b]);
+    let searches = compare(&[a0, a1b], 10);
+    eprintln!(
+        "shards: after the restart {searches} searches equal again ({:.1} s in all)",
+        t0.elapsed().as_secs_f64()
+    );
+}
+
+/// Search latency through one node holding the whole corpus against a sharded coordinator
+/// (2 shard nodes on the same machine), over synthetic signatures put into PostgreSQL by
+/// `shapeseek bench populate --store`; also checks that both answer the same hits:
+///
+/// `SHAPESEEK_CLUSTER_EIGENPAIRS=100 SHAPESEEK_CLUSTER_RECONCILE_SECS=600
+/// SHAPESEEK_SHARD_BENCH_N=100000 cargo test --release --test cluster shard_search_latency --
+/// --ignored --nocapture` (`SHAPESEEK_SHARD_BENCH_QUERIES`, default 50).
+#[test]
+#[ignore = "measurement (docs/scale-out.md)"]
+fn shard_search_latency() {
+    let (Some(pg_bin), Some(nats)) = (pg_bin_dir(), nats_bin()) else {
+        println!("SKIPPED: shard_search_latency: PostgreSQL or nats-server not found");
+        return;
+    };
+    assert_eq!(
+        std::env::var("SHAPESEEK_CLUSTER_EIGENPAIRS").as_deref(),
+        Ok("100"),
+        "the populated signatures are the product spec's: run with SHAPESEEK_CLUSTER_EIGENPAIRS=100"
+    );
+    let env_n = |k: &str, d: usize| {
+        std::env::var(k)
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(d)
+    };
+    let n = env_n("SHAPESEEK_SHARD_BENCH_N", 100_000);
+    let queries = env_n("SHAPESEEK_SHARD_BENCH_QUERIES", 50);
+    let tmp = tempfile::Builder::new()
+        .prefix("shapeseek-shardbench-")
+        .tempdir()
+        .unwrap();
+    let tmp = tmp.path();
+    let pg = Pg::start(&pg_bin, tmp);
+    let (_nats, nats_url) = start_nats(&nats, tmp);
+    assert!(Command::new(BIN)
+        .args(["migrate", "--store", &pg.url])
+        .output()
+        .unwrap()
+        .status
+        .success());
+    let t = Instant::now();
+    let out = Command::new(BIN)
+        .args([
+            "bench",
+            "populate",
+            "--store",
+            &pg.url,
+            "--count",
+            &n.to_string(),
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    println!(
+        "FIGURE populate n={n}: {:.1} s into PostgreSQL",
+        t.elapsed().as_secs_f64()
+    );
+
+    // Stored shapes to query with, spread over the id range.
+    let load = |name: &str, extra: &[&str]| {
+        let t = Instant::now();
+        let (p, a) = serve_node_with(name, tmp, &pg.url, &nats_url, extra);
+        println!(
+            "FIGURE {name} loaded in {:.1} s: {}",
+            t.elapsed().as_secs_f64(),
+            index(a)["shapes"]
+        );
+        (p, a)
+    };
+    let bodies = |ids: &[String]| -> Vec<String> {
+        ids.iter()
+            .flat_map(|id| {
+                [
+                    serde_json::json!({"id": id, "top_k": 10, "rerank": []}).to_string(),
+                    serde_json::json!({"id": id, "top_k": 10}).to_string(),
+                ]
+            })
+            .collect()
+    };
+    let measure = |what: &str, a: SocketAddr, bodies: &[String]| -> Vec<Vec<(String, u64)>> {
+        for b in bodies.iter().take(4) {
+            http(a, "POST", "/v1/search", b.as_bytes()).unwrap();
+        }
+        let mut out = Vec::new();
+        for (kind, skip) in [("scan only", 0), ("default stages", 1)] {
+            let mut ms = Vec::new();
+            // The server's own split: first stage (a sharded node: the whole scatter/gather)
+            // and rerank stages.
+            let (mut scan_ms, mut rerank_ms) = (Vec::new(), Vec::new());
+            for b in bodies.iter().skip(skip).step_by(2) {
+                let t = Instant::now();
+                let r = http(a, "POST", "/v1/search", b.as_bytes()).unwrap();
+                ms.push(t.elapsed().as_secs_f64() * 1e3);
+                assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+                let v = r.json();
+                scan_ms.push(v["timings"]["scan_ms"].as_f64().unwrap());
+                rerank_ms.push(v["timings"]["rerank_ms"].as_f64().unwrap());
+                out.push(
+                    v["hits"]
+                        .as_array()
+                        .unwrap()
+                        .iter()
+                        .map(|h| {
+                            (
+                                h["id"].as_str().unwrap().to_string(),
+                                h["score"].as_f64().unwrap().to_bits(),
+                            )
+                        })
+                        .collect(),
+                );
+            }
+            for v in [&mut ms, &mut scan_ms, &mut rerank_ms] {
+                v.sort_by(f64::total_cmp);
+            }
+            let q = |v: &[f64], p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+            println!(
+                "FIGURE search n={n} {what}, {kind}: p50 {:.2} ms, p90 {:.2} ms, max {:.2} ms \
+                 ({} queries; server p50: first stage {:.2} ms, rerank {:.2} ms)",
+                q(&ms, 0.5),
+                q(&ms, 0.9),
+                ms[ms.len() - 1],
+                ms.len(),
+                q(&scan_ms, 0.5),
+                q(&rerank_ms, 0.5)
+            );
+        }
+        out
+    };
+
+    let (whole, a) = load("whole", &[]);
+    let mut ids = Vec::new();
+    let mut cursor: Option<String> = None;
+    while ids.len() < n {
+        let path = match &cursor {
+            Some(c) => format!("/v1/shapes?limit=1000&cursor={c}"),
+            None => "/v1/shapes?limit=1000".into(),
+        };
+        let v = http(a, "GET", &path, b"").unwrap().json();
+        ids.extend(
+            v["items"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|it| it["id"].as_str().unwrap().to_string()),
+        );
+        match v["next_cursor"].as_str() {
+            Some(c) => cursor = Some(c.to_string()),
+            None => break,
+        }
+    }
+    let step = (ids.len() / queries).max(1);
+    let picked: Vec<String> = ids.iter().step_by(step).take(queries).cloned().collect();
+    let bodies = bodies(&picked);
+    let want = measure("one node (whole corpus)", a, &bodies);
+    drop(whole);
+    let (s0, a0) = load("shard0", &["--shard", "0/2"]);
+    let (s1, _a1) = load("shard1", &["--shard", "1/2"]);
+    let got = measure("2 shards (coordinator = shard 0)", a0, &bodies);
+    assert_eq!(got, want, "the shards answer as the whole node");
+    drop(s1);
+    drop(s0);
 }
 
 /// Uploads every mesh from `clients` threads to `addr` (retrying 503s); returns seconds.

@@ -104,6 +104,11 @@ impl Bus {
             .map_err(|e| queue_err("creating the job stream")(e.to_string()))
     }
 
+    /// The NATS connection (shard requests and replies, [`super::shard`]).
+    pub fn client(&self) -> &async_nats::Client {
+        &self.client
+    }
+
     /// The settings this bus was opened with.
     pub fn options(&self) -> &QueueOptions {
         &self.opts

@@ -26,9 +26,12 @@
 //!    `shapeseek.changes` ([`bus::Change`]); serving nodes apply it to their in-memory scan from
 //!    the store (the message carries no data: the store is the truth), and a node that starts
 //!    or misses messages reconciles its scan against the store (`src/server/replica.rs`).
+//! 5. With shards (`serve --shard S/N`), a node holds only its part of the corpus and a search
+//!    fans out over NATS request/reply ([`shard`]).
 
 pub mod bus;
 pub mod jobs;
+pub mod shard;
 
 pub use bus::{Bus, Change, QueueOptions};
 pub use jobs::{DeadLetter, Job, JobInput, JobState, JobStore};

@@ -29,10 +29,7 @@ impl App {
     /// True when the index size moved by more than the configured fraction since the last
     /// calibration.
     pub(super) fn needs_recalibration(&self) -> bool {
-        self.scan
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .needs_recalibration(self.cfg.recalibrate_fraction)
+        self.calibration_due(&self.scan.read().unwrap_or_else(|p| p.into_inner()))
     }
 
     /// After an insert or delete: gauges, and a background recalibration when the index size
@@ -85,14 +82,16 @@ impl App {
         loop {
             let (n, local_epoch) = {
                 let s = self.scan.read().unwrap_or_else(|p| p.into_inner());
-                if !provisional && !s.needs_recalibration(self.cfg.recalibrate_fraction) {
+                if !provisional && !self.calibration_due(&s) {
                     return false;
                 }
-                if s.is_empty() {
+                // The whole corpus: the store's for a sharded node (`src/server/shard.rs`).
+                let n = self.corpus_size(&s);
+                if n == 0 {
                     return false;
                 }
                 (
-                    s.len(),
+                    n,
                     s.calibration()
                         .map(|c| self.engine.calibration_epoch(c))
                         .unwrap_or(0),
@@ -137,8 +136,15 @@ impl App {
                 .enumerate()
                 .filter_map(|(i, id)| self.stored_signature(id).map(|s| (i, s)))
                 .collect();
-            let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
+            // A sharded node calibrates on every stored signature, in id order: what a single
+            // node holding the whole corpus computes.
+            let pool: Option<Vec<Signature>> = self.shard().map(|_| self.corpus_signatures());
+            let refs: Vec<&Signature> = match &pool {
+                Some(p) => p.iter().collect(),
+                None => sigs.iter().map(|(_, s)| s).collect(),
+            };
             let cal = Arc::new(self.engine.calibrate(&refs, epoch));
+            let on = pool.as_ref().map_or(snapshot.len(), Vec::len);
             let layout = Layout::of(&cal);
             let mut encoded: Vec<Encoded> = vec![Encoded::absent(&layout); snapshot.len()];
             let done: Vec<(usize, Encoded)> = sigs
@@ -146,13 +152,13 @@ impl App {
                 .map(|(i, s)| (*i, Encoded::from_signature(s, &cal, &layout)))
                 .collect();
             drop(refs);
+            drop(pool);
             drop(sigs);
             for (i, e) in done {
                 encoded[i] = e;
             }
             let corpus = Corpus::build(layout, &encoded);
             drop(encoded);
-            let on = snapshot.len();
             match self.commit_calibration(lock, epoch, on, &cal) {
                 Ok(()) => {
                     let app_rt = self.rt.clone();

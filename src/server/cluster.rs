@@ -191,6 +191,9 @@ impl App {
 
     /// Applies a stored shape to this node's scan (no-op when it is there already).
     pub(super) async fn apply_insert(self: &Arc<Self>, id: &str) -> Result<(), ApiError> {
+        if self.foreign_change(id).await? {
+            return Ok(()); // another shard's (src/server/shard.rs)
+        }
         if self
             .scan
             .read()
@@ -227,6 +230,9 @@ impl App {
 
     /// Applies a deletion to this node's scan.
     async fn apply_delete(self: &Arc<Self>, id: &str) -> Result<(), ApiError> {
+        if self.foreign_change(id).await? {
+            return Ok(());
+        }
         let app = self.clone();
         let id = id.to_string();
         let removed = tokio::task::spawn_blocking(move || {
@@ -253,7 +259,7 @@ impl App {
     }
 
     /// Installs the stored calibration when its epoch is newer than this node's.
-    async fn adopt_stored_calibration(self: &Arc<Self>) -> Result<(), ApiError> {
+    pub(super) async fn adopt_stored_calibration(self: &Arc<Self>) -> Result<(), ApiError> {
         let Some(stored) = self.store.calibration().await? else {
             return Ok(());
         };
@@ -284,6 +290,10 @@ impl App {
             if !page.more {
                 break;
             }
+        }
+        if let Some(sh) = self.shard() {
+            sh.set_total(stored.len());
+            stored.retain(|id| sh.spec.holds(id));
         }
         let held: HashSet<String> = self
             .scan

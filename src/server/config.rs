@@ -27,6 +27,13 @@ pub struct ServerConfig {
     pub queue_max_deliver: u32,
     /// Seconds between two reconciliations of a cluster node's scan with the store.
     pub reconcile_secs: f64,
+    /// `S/N`: this node holds shard `S` of `N` (the shapes whose id is `S` mod `N`) and answers
+    /// a search by fanning out to every shard over NATS (`docs/scale-out.md` §3). Needs a
+    /// PostgreSQL `store` and a `queue`. Empty: the whole corpus.
+    pub shard: String,
+    /// Seconds a coordinator waits for every shard's answer (503 `search.shard_unavailable`
+    /// past it).
+    pub shard_timeout_secs: f64,
     /// Listen address `HOST:PORT` (port 0 picks a free one).
     pub addr: String,
     /// Largest accepted request body, bytes.
@@ -95,6 +102,8 @@ impl Default for ServerConfig {
             queue_ack_wait_secs: 30.0,
             queue_max_deliver: 5,
             reconcile_secs: 5.0,
+            shard: String::new(),
+            shard_timeout_secs: 5.0,
             addr: "127.0.0.1:8080".into(),
             max_body_bytes: 64 << 20,
             max_vertices: 500_000,
@@ -243,9 +252,19 @@ impl ServerConfig {
                 return bad("queue needs a PostgreSQL store (--store postgres://…)");
             }
         }
+        if !self.shard.is_empty() {
+            crate::queue::shard::ShardSpec::parse(&self.shard)
+                .map_err(|e| Error::InvalidArgument(format!("config: {e}")))?;
+            if self.store.is_empty() || self.queue.is_empty() {
+                return bad(
+                    "shard needs a PostgreSQL store and a NATS queue (--store postgres://… --queue nats://…)",
+                );
+            }
+        }
         for (name, v) in [
             ("queue_ack_wait_secs", self.queue_ack_wait_secs),
             ("reconcile_secs", self.reconcile_secs),
+            ("shard_timeout_secs", self.shard_timeout_secs),
         ] {
             if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
                 return bad(&format!("{name} must be in (0, 86400]"));
@@ -268,6 +287,13 @@ impl ServerConfig {
     /// The NATS URL of `queue`, `None` without a queue.
     pub fn queue_url(&self) -> Option<&str> {
         (!self.queue.is_empty()).then_some(self.queue.as_str())
+    }
+
+    /// This node's shard, `None` for the whole corpus (validated by [`ServerConfig::validate`]).
+    pub fn shard_spec(&self) -> Option<crate::queue::shard::ShardSpec> {
+        (!self.shard.is_empty())
+            .then(|| crate::queue::shard::ShardSpec::parse(&self.shard).ok())
+            .flatten()
     }
 
     /// The work-queue settings.
@@ -304,6 +330,10 @@ pub struct ServeArgs {
     /// (`nats://HOST:PORT`; needs --store) [env SHAPESEEK_QUEUE]
     #[arg(long)]
     pub queue: Option<String>,
+    /// Hold shard S of N (`S/N`, the shapes whose id is S mod N) and answer searches by fanning
+    /// out to every shard over NATS (needs --store and --queue) [env SHAPESEEK_SHARD]
+    #[arg(long)]
+    pub shard: Option<String>,
     /// Listen address HOST:PORT [default: 127.0.0.1:8080; env SHAPESEEK_ADDR]
     #[arg(long)]
     pub addr: Option<String>,
@@ -338,6 +368,9 @@ impl ServeArgs {
         }
         if let Some(q) = &self.queue {
             cfg.queue = q.clone();
+        }
+        if let Some(s) = &self.shard {
+            cfg.shard = s.clone();
         }
         if let Some(w) = self.workers {
             cfg.workers = w;

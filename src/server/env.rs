@@ -9,8 +9,8 @@ use super::state::{App, Hitting};
 use crate::index::ScanIndex;
 use crate::ranking::QuerySpec;
 use crate::rerank::{gw_score, GwPayload, SgwStage};
-use crate::search::corpus::Encoded;
-use crate::search::{Entry, Env, Query};
+use crate::search::corpus::{Encoded, Layout};
+use crate::search::{Entry, Env, Query, ShapeRef};
 use rayon::prelude::*;
 
 /// What the stages of a server search read: the scan (locked while a stage reads it, released
@@ -58,11 +58,12 @@ impl Env<Hitting> for ServerEnv<'_> {
         let qv = self.query.clone();
         let s = self.relocked(list);
         let c = s.corpus();
-        let q = Query::new(query, c.layout());
-        Ok(list
-            .iter()
-            .map(|e| q.score(c.layout(), qv.view(), c.shape(e.at)))
-            .collect())
+        Ok(rescore(
+            c.layout(),
+            query,
+            qv.view(),
+            list.iter().map(|e| c.shape(e.at)),
+        ))
     }
 
     fn pairwise(&mut self, list: &mut Vec<Entry<Hitting>>) -> Result<Vec<f64>, ApiError> {
@@ -71,51 +72,93 @@ impl Env<Hitting> for ServerEnv<'_> {
         let first = self.first.clone();
         let s = self.relocked(list);
         let c = s.corpus();
-        let q = Query::new(&first, c.layout());
-        // The query and the candidates, each pair once (the upper triangle).
-        let items: Vec<crate::search::ShapeRef<'_>> = std::iter::once(qv.view())
-            .chain(list.iter().map(|e| c.shape(e.at)))
-            .collect();
-        let m = items.len();
-        let rows: Vec<Vec<f64>> = (0..m)
-            .into_par_iter()
-            .map(|a| {
-                items[a + 1..]
-                    .iter()
-                    .map(|&b| q.score(c.layout(), items[a], b))
-                    .collect()
-            })
-            .collect();
-        let mut d = vec![0.0; m * m];
-        for (a, row) in rows.iter().enumerate() {
-            d[a * m + a + 1..(a + 1) * m].copy_from_slice(row);
-        }
-        Ok(d)
+        Ok(pairwise(
+            c.layout(),
+            &first,
+            qv.view(),
+            list.iter().map(|e| c.shape(e.at)),
+        ))
     }
 
     fn gw(&mut self, list: &[Entry<Hitting>], stage: &SgwStage) -> Result<Vec<f64>, ApiError> {
         self.cancel.check()?;
         self.scan = None;
-        let Some(qp) = &self.query_payload else {
-            return Err(ApiError::internal("no query payload"));
-        };
-        let (cancel, app) = (&self.cancel, self.app);
-        // Each candidate reads its payload and solves its GW problem only while the search is
-        // wanted: an abandoned search stops after the candidates already started.
-        let scores: Vec<Result<f64, ApiError>> = list
-            .par_iter()
-            .map(|e| {
-                if cancel.is_cancelled() {
-                    cancel.note_skipped();
-                    return Ok(f64::NAN);
-                }
-                Ok(match app.stored_payload(&e.item.id)? {
-                    Some(p) => gw_score(qp, &p, &stage.gw),
-                    None => f64::INFINITY,
-                })
-            })
-            .collect();
-        self.cancel.check()?;
-        scores.into_iter().collect()
+        gw_scores(
+            self.app,
+            &self.cancel,
+            self.query_payload.as_ref(),
+            list,
+            stage,
+        )
     }
+}
+
+/// The scores of `shapes` against `query` under `spec` (an exact stage).
+pub(super) fn rescore<'a>(
+    layout: &Layout,
+    spec: &QuerySpec,
+    query: ShapeRef<'_>,
+    shapes: impl Iterator<Item = ShapeRef<'a>>,
+) -> Vec<f64> {
+    let q = Query::new(spec, layout);
+    shapes.map(|b| q.score(layout, query, b)).collect()
+}
+
+/// The first stage's dissimilarities between the query (item 0) and `shapes` (items `1..`):
+/// the strict upper triangle of a row-major `(n + 1)²` matrix (a reciprocal stage).
+pub(super) fn pairwise<'a>(
+    layout: &Layout,
+    first: &QuerySpec,
+    query: ShapeRef<'a>,
+    shapes: impl Iterator<Item = ShapeRef<'a>>,
+) -> Vec<f64> {
+    let q = Query::new(first, layout);
+    // The query and the candidates, each pair once (the upper triangle).
+    let items: Vec<ShapeRef<'_>> = std::iter::once(query).chain(shapes).collect();
+    let m = items.len();
+    let rows: Vec<Vec<f64>> = (0..m)
+        .into_par_iter()
+        .map(|a| {
+            items[a + 1..]
+                .iter()
+                .map(|&b| q.score(layout, items[a], b))
+                .collect()
+        })
+        .collect();
+    let mut d = vec![0.0; m * m];
+    for (a, row) in rows.iter().enumerate() {
+        d[a * m + a + 1..(a + 1) * m].copy_from_slice(row);
+    }
+    d
+}
+
+/// The GW scores of `list` against the query's payload, each candidate's payload read from the
+/// store (∞ where it has none), stopping once `cancel` trips.
+pub(super) fn gw_scores(
+    app: &App,
+    cancel: &Cancel,
+    query_payload: Option<&GwPayload>,
+    list: &[Entry<Hitting>],
+    stage: &SgwStage,
+) -> Result<Vec<f64>, ApiError> {
+    let Some(qp) = query_payload else {
+        return Err(ApiError::internal("no query payload"));
+    };
+    // Each candidate reads its payload and solves its GW problem only while the search is
+    // wanted: an abandoned search stops after the candidates already started.
+    let scores: Vec<Result<f64, ApiError>> = list
+        .par_iter()
+        .map(|e| {
+            if cancel.is_cancelled() {
+                cancel.note_skipped();
+                return Ok(f64::NAN);
+            }
+            Ok(match app.stored_payload(&e.item.id)? {
+                Some(p) => gw_score(qp, &p, &stage.gw),
+                None => f64::INFINITY,
+            })
+        })
+        .collect();
+    cancel.check()?;
+    scores.into_iter().collect()
 }

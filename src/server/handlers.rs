@@ -465,7 +465,7 @@ pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
                 .unwrap_or(0),
         )
     };
-    Ok(Json(serde_json::json!({
+    let mut v = serde_json::json!({
         "shapes": n,
         "calibration_epoch": epoch,
         "calibrated_on": on,
@@ -476,8 +476,16 @@ pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
         "default_query": serde_json::to_value(app.engine.default_query()).map_err(ApiError::internal)?,
         "size_on_disk": app.store.size_on_disk().await.map_err(ApiError::internal)?,
         "queue": queue_stats(&app),
-    }))
-    .into_response())
+    });
+    if let Some(sh) = app.shard() {
+        // A sharded node: `shapes` are its shard's, `calibrated_on` counts the whole corpus.
+        v["shard"] = serde_json::json!({
+            "index": sh.spec.index,
+            "count": sh.spec.count,
+            "corpus_shapes": sh.total(),
+        });
+    }
+    Ok(Json(v).into_response())
 }
 
 /// The `queue` object of `GET /v1/index`: totals (as before the lanes existed) and per lane.

@@ -50,7 +50,9 @@ impl App {
             retry_after: cfg.retry_after_secs,
             request_timeout: std::time::Duration::from_secs_f64(cfg.request_timeout_secs),
         })?;
+        let shard = cfg.shard_spec().map(super::shard::Sharding::new);
         let app = App {
+            shard,
             admission,
             cfg,
             store,
@@ -89,11 +91,17 @@ impl App {
         let mut shapes = Vec::new();
         let mut recomputed = 0usize;
         let mut after: Option<String> = None;
+        let mut total = 0usize;
         loop {
             let page = self.block(self.store.scan_signatures(after.as_deref(), LOAD_PAGE))?;
             let full = page.len() >= LOAD_PAGE;
             after = page.last().map(|(r, _)| r.id.clone());
+            total += page.len();
             for (rec, bytes) in page {
+                // A sharded node decodes (and refreshes) its own shard's signatures only.
+                if self.shard().is_some_and(|sh| !sh.spec.holds(&rec.id)) {
+                    continue;
+                }
                 let sig = match self.engine.decode_signature(&bytes) {
                     Ok(s)
                         if rec.spec_key == spec_key
@@ -120,6 +128,9 @@ impl App {
         }
         if recomputed > 0 {
             tracing::info!(recomputed, "signatures recomputed for the current spec");
+        }
+        if let Some(sh) = self.shard() {
+            sh.set_total(total);
         }
         Ok((shapes, recomputed))
     }
@@ -150,7 +161,9 @@ impl App {
     /// recomputed, the size has not moved past `recalibrate_fraction`), else a new one computed
     /// and committed as the next epoch, all under the store's calibration lock.
     fn calibrated_scan(&self, shapes: Vec<Row>, recomputed: usize) -> crate::Result<ScanIndex> {
-        if shapes.is_empty() {
+        // The whole corpus's size: a sharded node's `shapes` are its shard's.
+        let n = self.shard().map_or(shapes.len(), |sh| sh.total());
+        if n == 0 {
             return Ok(ScanIndex::default());
         }
         let lock = self.block(self.store.lock_calibration())?;
@@ -160,17 +173,23 @@ impl App {
                 .map(|c| (c, s.calibrated_on as usize))
         });
         let (cal, on) = match stored {
-            Some((cal, on))
-                if recomputed == 0 && !moved(on, shapes.len(), self.cfg.recalibrate_fraction) =>
-            {
+            Some((cal, on)) if recomputed == 0 && !moved(on, n, self.cfg.recalibrate_fraction) => {
                 self.block(lock.release())?;
                 (cal, on)
             }
             _ => {
-                let sigs: Vec<&Signature> = shapes.iter().map(|s| &s.3).collect();
+                // A sharded node calibrates on every stored signature (read again, page by
+                // page: `src/server/shard.rs`), as a single node holding them all would.
+                let pool: Option<Vec<Signature>> = self.shard().map(|_| self.corpus_signatures());
+                let sigs: Vec<&Signature> = match &pool {
+                    Some(p) => p.iter().collect(),
+                    None => shapes.iter().map(|s| &s.3).collect(),
+                };
                 let epoch = lock.next_epoch();
                 let cal = self.engine.calibrate(&sigs, epoch);
-                let on = shapes.len();
+                let on = sigs.len();
+                drop(sigs);
+                drop(pool);
                 self.commit_calibration(lock, epoch, on, &cal)?;
                 (cal, on)
             }

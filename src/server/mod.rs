@@ -37,6 +37,7 @@ pub mod metrics;
 pub mod prepared;
 pub mod problem;
 pub mod router;
+pub mod shard;
 pub mod state;
 pub mod web;
 

@@ -287,6 +287,7 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
     let app = Arc::new(app);
     if app.cluster.is_some() {
         app.spawn_replica(Duration::from_secs_f64(app.cfg.reconcile_secs));
+        app.start_shard_responder().await?;
     }
     let router = router(app.clone());
     app.ready.store(true, Ordering::Release);

@@ -43,6 +43,8 @@ pub struct App {
     pub metrics: Option<metrics_exporter_prometheus::PrometheusHandle>,
     /// The work queue and change feed, when this node is one of a cluster.
     pub(super) cluster: Option<super::cluster::Cluster>,
+    /// The shard this node holds (`--shard S/N`); `None`: the whole corpus.
+    pub(super) shard: Option<super::shard::Sharding>,
 }
 
 /// Per-stage milliseconds of one ingest or query analysis.
@@ -554,6 +556,9 @@ impl App {
         query_sig: Option<QueryAnalysis>,
         deadline: Option<Instant>,
     ) -> Result<SearchResult, ApiError> {
+        if self.shard.is_some() {
+            return self.sharded_search(opts, query_sig, deadline).await;
+        }
         let t0 = Instant::now();
         let (top_k, spec, spec_json, stages) = self.resolve_options(&opts)?;
         let (query_sig, upload_payload, analysis_t) = match query_sig {
