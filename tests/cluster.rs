@@ -82,6 +82,55 @@ impl Drop for Pg {
     }
 }
 
+/// A private PostgreSQL and `nats-server` in a temporary directory, for one test or
+/// measurement; `None` (after a visible `SKIPPED:` line) when their binaries are missing — a
+/// failure instead under `CI=true` unless `measurement` (an ignored measurement, not CI's).
+/// Fields drop in order: the engines stop before their directory is removed.
+struct Engines {
+    _nats: Proc,
+    pg: Pg,
+    nats_url: String,
+    tmp: tempfile::TempDir,
+}
+
+impl Engines {
+    fn start(what: &str, measurement: bool) -> Option<Engines> {
+        let (Some(pg_bin), Some(nats)) = (pg_bin_dir(), nats_bin()) else {
+            assert!(
+                measurement || std::env::var("CI").as_deref() != Ok("true"),
+                "{what}: PostgreSQL (initdb/pg_ctl) and nats-server are required in CI"
+            );
+            println!("SKIPPED: {what}: PostgreSQL (initdb/pg_ctl) or nats-server not found");
+            return None;
+        };
+        let tmp = tempfile::Builder::new()
+            .prefix(&format!("shapeseek-{what}-"))
+            .tempdir()
+            .unwrap();
+        let pg = Pg::start(&pg_bin, tmp.path());
+        let (nats, nats_url) = start_nats(&nats, tmp.path());
+        Some(Engines {
+            _nats: nats,
+            pg,
+            nats_url,
+            tmp,
+        })
+    }
+
+    fn tmp(&self) -> &Path {
+        self.tmp.path()
+    }
+}
+
+/// `shapeseek migrate --store url`, which must succeed.
+fn migrate(url: &str) {
+    let out = Command::new(BIN)
+        .args(["migrate", "--store", url])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "migrate {url}: {out:?}");
+}
+
 /// A child process, SIGKILLed on drop.
 struct Proc {
     child: Child,
@@ -505,21 +554,10 @@ fn sled_reference(
 
 #[test]
 fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
-    let (Some(pg_bin), Some(nats)) = (pg_bin_dir(), nats_bin()) else {
-        assert!(
-            std::env::var("CI").as_deref() != Ok("true"),
-            "cluster test: PostgreSQL (initdb/pg_ctl) and nats-server are required in CI"
-        );
-        println!("SKIPPED: cluster test: PostgreSQL (initdb/pg_ctl) or nats-server not found");
+    let Some(engines) = Engines::start("cluster", false) else {
         return;
     };
-    let tmp = tempfile::Builder::new()
-        .prefix("shapeseek-cluster-")
-        .tempdir()
-        .unwrap();
-    let tmp = tmp.path();
-    let pg = Pg::start(&pg_bin, tmp);
-    let (_nats, nats_url) = start_nats(&nats, tmp);
+    let (tmp, pg, nats_url) = (engines.tmp(), &engines.pg, engines.nats_url.clone());
 
     // An unmigrated database is refused; `migrate` applies the schema once.
     let out = Command::new(BIN)
@@ -817,27 +855,12 @@ fn wait_shards_settled(nodes: &[(SocketAddr, u64)], ids: &[String], procs: &[&Pr
 /// shard that is down makes searches 503 (never partial), and it answers again once restarted.
 #[test]
 fn two_shards_answer_as_one_sled_node() {
-    let (Some(pg_bin), Some(nats)) = (pg_bin_dir(), nats_bin()) else {
-        assert!(
-            std::env::var("CI").as_deref() != Ok("true"),
-            "shard test: PostgreSQL (initdb/pg_ctl) and nats-server are required in CI"
-        );
-        println!("SKIPPED: shard test: PostgreSQL (initdb/pg_ctl) or nats-server not found");
+    let t0 = Instant::now();
+    let Some(engines) = Engines::start("shards", false) else {
         return;
     };
-    let t0 = Instant::now();
-    let tmp = tempfile::Builder::new()
-        .prefix("shapeseek-shards-")
-        .tempdir()
-        .unwrap();
-    let tmp = tmp.path();
-    let pg = Pg::start(&pg_bin, tmp);
-    let (_nats, nats_url) = start_nats(&nats, tmp);
-    let out = Command::new(BIN)
-        .args(["migrate", "--store", &pg.url])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{out:?}");
+    let (tmp, pg, nats_url) = (engines.tmp(), &engines.pg, engines.nats_url.clone());
+    migrate(&pg.url);
     // --shard needs a PostgreSQL store and a queue.
     let out = Command::new(BIN)
         .args(["serve", "--shard", "0/2", "--addr", "127.0.0.1:0"])
@@ -1008,8 +1031,7 @@ fn two_shards_answer_as_one_sled_node() {
 #[test]
 #[ignore = "measurement (docs/scale-out.md)"]
 fn shard_search_latency() {
-    let (Some(pg_bin), Some(nats)) = (pg_bin_dir(), nats_bin()) else {
-        println!("SKIPPED: shard_search_latency: PostgreSQL or nats-server not found");
+    let Some(engines) = Engines::start("shard_search_latency", true) else {
         return;
     };
     assert_eq!(
@@ -1025,19 +1047,8 @@ fn shard_search_latency() {
     };
     let n = env_n("SHAPESEEK_SHARD_BENCH_N", 100_000);
     let queries = env_n("SHAPESEEK_SHARD_BENCH_QUERIES", 50);
-    let tmp = tempfile::Builder::new()
-        .prefix("shapeseek-shardbench-")
-        .tempdir()
-        .unwrap();
-    let tmp = tmp.path();
-    let pg = Pg::start(&pg_bin, tmp);
-    let (_nats, nats_url) = start_nats(&nats, tmp);
-    assert!(Command::new(BIN)
-        .args(["migrate", "--store", &pg.url])
-        .output()
-        .unwrap()
-        .status
-        .success());
+    let (tmp, pg, nats_url) = (engines.tmp(), &engines.pg, engines.nats_url.clone());
+    migrate(&pg.url);
     let t = Instant::now();
     let out = Command::new(BIN)
         .args([
@@ -1206,17 +1217,10 @@ fn upload_all(addr: SocketAddr, meshes: &Arc<Vec<(String, Vec<u8>)>>, clients: u
 #[test]
 #[ignore = "measurement (docs/scale-out.md)"]
 fn queue_overhead() {
-    let (Some(pg_bin), Some(nats)) = (pg_bin_dir(), nats_bin()) else {
-        println!("SKIPPED: queue_overhead: PostgreSQL or nats-server not found");
+    let Some(engines) = Engines::start("queue_overhead", true) else {
         return;
     };
-    let tmp = tempfile::Builder::new()
-        .prefix("shapeseek-qbench-")
-        .tempdir()
-        .unwrap();
-    let tmp = tmp.path();
-    let pg = Pg::start(&pg_bin, tmp);
-    let (_nats, nats_url) = start_nats(&nats, tmp);
+    let (tmp, pg, nats_url) = (engines.tmp(), &engines.pg, engines.nats_url.clone());
     let meshes = Arc::new(corpus(tmp));
     let n = meshes.len();
     let db = |name: &str| {
@@ -1239,12 +1243,7 @@ fn queue_overhead() {
             Some((base, _)) => format!("{base}/{name}"),
             None => panic!("no database in {}", pg.url),
         };
-        assert!(Command::new(BIN)
-            .args(["migrate", "--store", &url])
-            .output()
-            .unwrap()
-            .status
-            .success());
+        migrate(&url);
         url
     };
 
