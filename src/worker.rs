@@ -2,12 +2,16 @@
 //! the same code as a serving node ([`crate::server::prepared`]), stores the shapes in
 //! PostgreSQL and acks (see [`crate::queue`] for the whole protocol).
 //!
-//! Each of the `jobs` loops handles one message at a time:
+//! `jobs` analysis slots: a job is pulled only when a slot is free, and holds it from its claim
+//! to the end of its analysis; its insert, completion and ack then run beside the next job's
+//! analysis (so a slot's core is not idle while PostgreSQL commits — the same overlap a serving
+//! node's heavy lane has with its inserts). Each job:
 //!
 //! 1. claim the job (counts the attempt); unknown (deleted) or no longer pending → ack;
 //! 2. the same bytes stored already → mark done, announce, ack (a redelivery after a worker
 //!    died between the insert and the ack ends here);
-//! 3. analyse on a blocking thread, sending "in progress" every third of `ack_wait`;
+//! 3. analyse on a blocking thread, sending "in progress" every third of `ack_wait`; free the
+//!    slot;
 //! 4. insert under the job's id (idempotent by content hash), mark done, announce, ack;
 //! 5. a refusal of the input (4xx) → dead letter, ack; any other failure → `nak` with a delay
 //!    until the delivery count reaches `max_deliver`, then a dead letter (503) and `term`.
@@ -23,6 +27,7 @@ use crate::{Error, Result};
 use async_nats::jetstream::{AckKind, Message};
 use std::sync::Arc;
 use std::time::Duration;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 /// How long one pull request waits for a job before the worker asks again.
 const PULL_WAIT: Duration = Duration::from_secs(5);
@@ -74,10 +79,9 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
         bus,
     });
     let mut tasks = tokio::task::JoinSet::new();
-    for _ in 0..cfg.jobs.max(1) {
-        let w = w.clone();
-        tasks.spawn(async move { w.pull_loop().await });
-    }
+    let slots = Arc::new(Semaphore::new(cfg.jobs.max(1)));
+    let puller = w.clone();
+    tasks.spawn(async move { puller.pull_loop(slots).await });
     let sweeper = w.clone();
     tasks.spawn(async move { sweeper.sweep_loop().await });
     tracing::info!(jobs = cfg.jobs.max(1), "worker ready");
@@ -101,7 +105,8 @@ enum Outcome {
 }
 
 impl Worker {
-    async fn pull_loop(self: Arc<Self>) -> Result<()> {
+    /// Pulls a job whenever an analysis slot is free and handles it on a task of its own.
+    async fn pull_loop(self: Arc<Self>, slots: Arc<Semaphore>) -> Result<()> {
         loop {
             let consumer = match self.bus.worker_consumer().await {
                 Ok(c) => c,
@@ -112,8 +117,16 @@ impl Worker {
                 }
             };
             loop {
+                let slot = slots
+                    .clone()
+                    .acquire_owned()
+                    .await
+                    .map_err(|e| Error::Queue(format!("analysis slots closed: {e}")))?;
                 match Bus::next_job(&consumer, PULL_WAIT).await {
-                    Ok(Some(msg)) => self.handle(msg).await,
+                    Ok(Some(msg)) => {
+                        let w = self.clone();
+                        tokio::spawn(async move { w.handle(msg, slot).await });
+                    }
                     Ok(None) => {}
                     Err(e) => {
                         tracing::warn!(error = %e, "pulling a job failed; reconnecting");
@@ -148,11 +161,12 @@ impl Worker {
         }
     }
 
-    async fn handle(&self, msg: Message) {
+    /// Handles one delivery; `slot` is released once the analysis is over (or not needed).
+    async fn handle(&self, msg: Message, slot: OwnedSemaphorePermit) {
         let delivered = msg.info().map(|i| i.delivered).unwrap_or(1);
         let id = String::from_utf8_lossy(&msg.payload).to_string();
         tracing::debug!(id, delivered, "job received");
-        let outcome = match self.run_job(&id, &msg).await {
+        let outcome = match self.run_job(&id, &msg, slot).await {
             Ok(o) => o,
             Err(e) => Outcome::Retry(e.to_string()),
         };
@@ -182,7 +196,13 @@ impl Worker {
         }
     }
 
-    async fn run_job(&self, id: &str, msg: &Message) -> Result<Outcome> {
+    async fn run_job(
+        &self,
+        id: &str,
+        msg: &Message,
+        slot: OwnedSemaphorePermit,
+    ) -> Result<Outcome> {
+        let t0 = std::time::Instant::now();
         let Some(input) = self.jobs.claim(id).await? else {
             tracing::info!(id, "unknown job (deleted); dropped");
             return Ok(Outcome::Ack);
@@ -199,6 +219,7 @@ impl Worker {
                 "pending job {id} has no upload"
             )));
         };
+        let t_claim = t0.elapsed();
         let prepared = {
             let work = self.analyse(input, bytes);
             tokio::pin!(work);
@@ -228,9 +249,21 @@ impl Worker {
             }
             Err(e) => return Ok(Outcome::Retry(format!("{}: {}", e.code, e.detail))),
         };
+        let t_analysis = t0.elapsed();
+        drop(slot);
         let (shape, _, _) = prepared.into_new_shape(id);
         let outcome = self.store.insert(shape).await?;
+        let t_insert = t0.elapsed();
         self.finish(id, outcome.id()).await?;
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        tracing::debug!(
+            id,
+            claim_ms = ms(t_claim),
+            analysis_ms = ms(t_analysis - t_claim),
+            insert_ms = ms(t_insert - t_analysis),
+            finish_ms = ms(t0.elapsed() - t_insert),
+            "job stored"
+        );
         Ok(Outcome::Ack)
     }
 
