@@ -154,6 +154,11 @@ impl Proc {
         }
     }
 
+    /// CPU seconds (user + system) the process has used so far (Linux `/proc`; 0 elsewhere).
+    fn cpu_secs(&self) -> f64 {
+        proc_cpu_secs(self.child.id())
+    }
+
     fn kill(&mut self) {
         let _ = self.child.kill(); // SIGKILL
         let _ = self.child.wait();
@@ -287,16 +292,17 @@ fn common_env(cmd: &mut Command) -> &mut Command {
 }
 
 fn serve_node(name: &str, tmp: &Path, pg: &str, nats: &str) -> (Proc, SocketAddr) {
-    serve_node_with(name, tmp, pg, nats, &[])
+    serve_node_with(name, tmp, pg, nats, &[], &[])
 }
 
-/// [`serve_node`] with `extra` flags (e.g. `--shard 0/2`).
+/// [`serve_node`] with `extra` flags (e.g. `--shard 0/2`) and `envs` over [`common_env`]'s.
 fn serve_node_with(
     name: &str,
     tmp: &Path,
     pg: &str,
     nats: &str,
     extra: &[&str],
+    envs: &[(&str, &str)],
 ) -> (Proc, SocketAddr) {
     let port = free_port();
     let addr: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
@@ -316,7 +322,8 @@ fn serve_node_with(
                     &addr.to_string(),
                 ])
                 .args(extra),
-        ),
+        )
+        .envs(envs.iter().copied()),
         tmp.join(format!("{name}.log")),
     );
     wait_ready(addr, &p);
@@ -876,7 +883,7 @@ fn two_shards_answer_as_one_sled_node() {
     let meshes = corpus(tmp);
     let n = meshes.len();
     let shard_node =
-        |name: &str, s: &str| serve_node_with(name, tmp, &pg.url, &nats_url, &["--shard", s]);
+        |name: &str, s: &str| serve_node_with(name, tmp, &pg.url, &nats_url, &["--shard", s], &[]);
     let (s0, a0) = shard_node("shard0", "0/2");
     let (s1, a1) = shard_node("shard1", "1/2");
     let w1 = worker("worker1", tmp, &pg.url, &nats_url);
@@ -1070,7 +1077,7 @@ fn shard_search_latency() {
     // Stored shapes to query with, spread over the id range.
     let load = |name: &str, extra: &[&str]| {
         let t = Instant::now();
-        let (p, a) = serve_node_with(name, tmp, &pg.url, &nats_url, extra);
+        let (p, a) = serve_node_with(name, tmp, &pg.url, &nats_url, extra, &[]);
         println!(
             "FIGURE {name} loaded in {:.1} s: {}",
             t.elapsed().as_secs_f64(),
@@ -1172,6 +1179,38 @@ fn shard_search_latency() {
     drop(s0);
 }
 
+/// CPU seconds (user + system) process `pid` has used, from `/proc/PID/stat` at 100 ticks/s
+/// (`utime`, `stime`: the 12th and 13th fields after the parenthesised command name).
+fn proc_cpu_secs(pid: u32) -> f64 {
+    let Ok(text) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return 0.0;
+    };
+    let after = text.rfind(')').map(|i| &text[i + 1..]).unwrap_or("");
+    let v: Vec<f64> = after
+        .split_whitespace()
+        .map(|x| x.parse().unwrap_or(0.0))
+        .collect();
+    (v.get(11).copied().unwrap_or(0.0) + v.get(12).copied().unwrap_or(0.0)) / 100.0
+}
+
+/// Busy CPU seconds of the whole machine so far (`/proc/stat`: user, nice, system, irq,
+/// softirq, steal; not idle or iowait).
+fn machine_busy_secs() -> f64 {
+    let Ok(text) = std::fs::read_to_string("/proc/stat") else {
+        return 0.0;
+    };
+    let v: Vec<f64> = text
+        .lines()
+        .next()
+        .unwrap_or("")
+        .split_whitespace()
+        .skip(1)
+        .map(|x| x.parse().unwrap_or(0.0))
+        .collect();
+    let at = |i: usize| v.get(i).copied().unwrap_or(0.0);
+    (at(0) + at(1) + at(2) + at(5) + at(6) + at(7)) / 100.0
+}
+
 /// Uploads every mesh from `clients` threads to `addr` (retrying 503s); returns seconds.
 fn upload_all(addr: SocketAddr, meshes: &Arc<Vec<(String, Vec<u8>)>>, clients: usize) -> f64 {
     let next = Arc::new(AtomicUsize::new(0));
@@ -1213,10 +1252,19 @@ fn upload_all(addr: SocketAddr, meshes: &Arc<Vec<(String, Vec<u8>)>>, clients: u
 /// worker with `--jobs S`:
 ///
 /// `cargo test --release --test cluster queue_overhead -- --ignored --nocapture`
-/// (`SHAPESEEK_CLUSTER_MESHES`, `SHAPESEEK_CLUSTER_LIMIT` as for the cluster test).
+/// (`SHAPESEEK_CLUSTER_MESHES`, `SHAPESEEK_CLUSTER_LIMIT` as for the cluster test;
+/// `SHAPESEEK_OVERHEAD_ROUNDS` rounds, default 2, each on fresh databases, the order of the two
+/// sides alternating).
 #[test]
 #[ignore = "measurement (docs/scale-out.md)"]
 fn queue_overhead() {
+    /// One side's pass: wall seconds and CPU seconds used during it.
+    struct Pass {
+        secs: f64,
+        machine_cpu: f64,
+        node_cpu: f64,
+        worker_cpu: f64,
+    }
     let Some(engines) = Engines::start("queue_overhead", true) else {
         return;
     };
@@ -1248,46 +1296,103 @@ fn queue_overhead() {
     };
 
     let slots = std::env::var("SHAPESEEK_OVERHEAD_SLOTS").unwrap_or_else(|_| "2".into());
-    let direct_url = db("bench_direct");
-    let port = free_port();
-    let a: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
-    let node = Proc::spawn(
-        "direct",
-        common_env(Command::new(BIN).args(["serve", "--store", &direct_url, "--workers", &slots]))
-            .env("SHAPESEEK_HEAVY_SHARE", "1")
-            .env("SHAPESEEK_HEAVY_NICE", "0")
-            .args(["--addr", &a.to_string()]),
-        tmp.join("direct.log"),
-    );
-    wait_ready(a, &node);
-    let direct = upload_all(a, &meshes, 4);
-    drop(node);
-
-    let queued_url = db("bench_queued");
-    let (node, qa) = serve_node("queued", tmp, &queued_url, &nats_url);
-    let w = Proc::spawn(
-        "worker",
-        common_env(Command::new(BIN).args([
-            "worker",
-            "--store",
-            &queued_url,
-            "--queue",
+    // The product's recalibration policy (recalibrate when the corpus moved by 10 %), not the
+    // cluster test's `0` (after every insert, so that every node ends on the same calibration):
+    // at `0` the serving node's recalibrations, which grow with the corpus, are measured instead
+    // of the queue. `SHAPESEEK_OVERHEAD_RECALIBRATE_FRACTION` sets another.
+    let fraction =
+        std::env::var("SHAPESEEK_OVERHEAD_RECALIBRATE_FRACTION").unwrap_or_else(|_| "0.1".into());
+    let direct_pass = |r: usize| {
+        let url = db(&format!("bench_direct_{r}"));
+        let a: SocketAddr = format!("127.0.0.1:{}", free_port()).parse().unwrap();
+        let node = Proc::spawn(
+            "direct",
+            common_env(Command::new(BIN).args(["serve", "--store", &url, "--workers", &slots]))
+                .env("SHAPESEEK_HEAVY_SHARE", "1")
+                .env("SHAPESEEK_HEAVY_NICE", "0")
+                .env("SHAPESEEK_RECALIBRATE_FRACTION", &fraction)
+                .args(["--addr", &a.to_string()]),
+            tmp.join(format!("direct-{r}.log")),
+        );
+        wait_ready(a, &node);
+        let busy = machine_busy_secs();
+        let secs = upload_all(a, &meshes, 4);
+        Pass {
+            secs,
+            machine_cpu: machine_busy_secs() - busy,
+            node_cpu: node.cpu_secs(),
+            worker_cpu: 0.0,
+        }
+    };
+    let queued_pass = |r: usize| {
+        let url = db(&format!("bench_queued_{r}"));
+        let (node, qa) = serve_node_with(
+            &format!("queued-{r}"),
+            tmp,
+            &url,
             &nats_url,
-            "--jobs",
-            &slots,
-        ])),
-        tmp.join("worker.log"),
-    );
-    let queued = upload_all(qa, &meshes, 4);
-    drop(w);
-    drop(node);
+            &[],
+            &[("SHAPESEEK_RECALIBRATE_FRACTION", &fraction)],
+        );
+        let worker = Proc::spawn(
+            "worker",
+            common_env(Command::new(BIN).args([
+                "worker", "--store", &url, "--queue", &nats_url, "--jobs", &slots,
+            ])),
+            tmp.join(format!("worker-{r}.log")),
+        );
+        let busy = machine_busy_secs();
+        let secs = upload_all(qa, &meshes, 4);
+        Pass {
+            secs,
+            machine_cpu: machine_busy_secs() - busy,
+            node_cpu: node.cpu_secs(),
+            worker_cpu: worker.cpu_secs(),
+        }
+    };
+    // Rounds in the order direct, queued | queued, direct | …, so that a drift of the machine
+    // over the run (warming, other load) falls on both sides alike.
+    let rounds: usize = std::env::var("SHAPESEEK_OVERHEAD_ROUNDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2);
+    let (mut direct, mut queued) = (0.0, 0.0);
+    for r in 0..rounds {
+        let (d, q) = if r % 2 == 0 {
+            let d = direct_pass(r);
+            (d, queued_pass(r))
+        } else {
+            let q = queued_pass(r);
+            (direct_pass(r), q)
+        };
+        println!(
+            "FIGURE round {r}: direct {:.2} s, queued {:.2} s, overhead {:+.1}%",
+            d.secs,
+            q.secs,
+            (q.secs / d.secs - 1.0) * 100.0
+        );
+        // Where the CPU went (the machine's busy seconds include PostgreSQL and NATS).
+        for (side, p) in [("direct", &d), ("queued", &q)] {
+            println!(
+                "FIGURE round {r} {side} CPU s: machine {:.1}, node {:.1}, worker {:.1}, \
+                 rest {:.1}",
+                p.machine_cpu,
+                p.node_cpu,
+                p.worker_cpu,
+                p.machine_cpu - p.node_cpu - p.worker_cpu
+            );
+        }
+        direct += d.secs;
+        queued += q.secs;
+    }
+    let total = (n * rounds) as f64;
     println!(
-        "FIGURE direct ({slots} analysis slots) n={n}: {direct:.2} s, {:.3} shapes/s",
-        n as f64 / direct
+        "FIGURE direct ({slots} analysis slots) {rounds} x n={n}: {direct:.2} s, {:.3} shapes/s",
+        total / direct
     );
     println!(
-        "FIGURE queued (1 worker, --jobs {slots}) n={n}: {queued:.2} s, {:.3} shapes/s",
-        n as f64 / queued
+        "FIGURE queued (1 worker, --jobs {slots}) {rounds} x n={n}: {queued:.2} s, {:.3} shapes/s",
+        total / queued
     );
     println!(
         "FIGURE queue overhead: {:+.1}% of direct ingest time",
