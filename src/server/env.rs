@@ -5,13 +5,30 @@
 
 use super::admission::Cancel;
 use super::problem::ApiError;
-use super::state::{App, Hitting};
+use super::state::{App, Hit, Hitting};
 use crate::index::ScanIndex;
 use crate::ranking::QuerySpec;
 use crate::rerank::{gw_score, GwPayload, SgwStage};
 use crate::search::corpus::{Encoded, Layout};
 use crate::search::{Entry, Env, Query, ShapeRef};
 use rayon::prelude::*;
+
+/// The first `top_k` entries of a ranked list as the API's hits (rank from 1), all scored under
+/// calibration `epoch`. One node's search and a sharded coordinator's answer alike.
+pub(super) fn hits(mut list: Vec<Entry<Hitting>>, top_k: usize, epoch: u64) -> Vec<Hit> {
+    list.truncate(top_k);
+    list.into_iter()
+        .enumerate()
+        .map(|(r, e)| Hit {
+            id: e.item.id,
+            name: e.item.name,
+            score: e.score,
+            rank: r + 1,
+            calibration_epoch: epoch,
+            stage_scores: e.stage_scores,
+        })
+        .collect()
+}
 
 /// What the stages of a server search read: the scan (locked while a stage reads it, released
 /// during GW solves, which take up to seconds and would hold back writers and the readers

@@ -26,7 +26,7 @@
 use super::admission::{Cancel, Cost};
 use super::env::{gw_scores, pairwise, rescore};
 use super::problem::ApiError;
-use super::state::{App, Hit, Hitting, QueryAnalysis, SearchOptions, SearchResult, SearchTimings};
+use super::state::{App, Hitting, QueryAnalysis, SearchOptions, SearchResult, SearchTimings};
 use crate::index::ScanIndex;
 use crate::queue::shard::{
     answer_messages, decode_request, encode_reply, fingerprint, id_number, scatter, send_reply,
@@ -524,21 +524,8 @@ impl App {
                     cancel: cancel.clone(),
                     encoded,
                 };
-                let mut list = crate::search::run(&stages, list, &mut env)?;
-                list.truncate(top_k);
-                let hits: Vec<Hit> = list
-                    .into_iter()
-                    .enumerate()
-                    .map(|(r, e)| Hit {
-                        id: e.item.id,
-                        name: e.item.name,
-                        score: e.score,
-                        rank: r + 1,
-                        calibration_epoch: epoch,
-                        stage_scores: e.stage_scores,
-                    })
-                    .collect();
-                Ok((hits, ms(t2)))
+                let list = crate::search::run(&stages, list, &mut env)?;
+                Ok((super::env::hits(list, top_k, epoch), ms(t2)))
             })
             .await?;
         Ok(SearchResult {

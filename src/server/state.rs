@@ -651,23 +651,16 @@ impl App {
                     query_payload,
                     cancel: cancel.clone(),
                 };
-                let mut list = crate::search::run(&stages, list, &mut env)?;
+                let list = crate::search::run(&stages, list, &mut env)?;
                 drop(env);
                 let rerank_ms = ms(t2);
-                list.truncate(top_k);
-                let hits: Vec<Hit> = list
-                    .into_iter()
-                    .enumerate()
-                    .map(|(r, e)| Hit {
-                        id: e.item.id,
-                        name: e.item.name,
-                        score: e.score,
-                        rank: r + 1,
-                        calibration_epoch: epoch,
-                        stage_scores: e.stage_scores,
-                    })
-                    .collect();
-                Ok((hits, epoch, candidates, scan_ms, rerank_ms))
+                Ok((
+                    super::env::hits(list, top_k, epoch),
+                    epoch,
+                    candidates,
+                    scan_ms,
+                    rerank_ms,
+                ))
             })
             .await?;
         Ok(SearchResult {
