@@ -164,6 +164,14 @@ impl Proc {
         let _ = self.child.wait();
     }
 
+    /// Jobs a worker has received and not acked (its debug log's "job received" lines less its
+    /// "job acked" lines): one it is analysing, storing or about to ack.
+    fn jobs_held(&self) -> usize {
+        let s = std::fs::read_to_string(&self.log).unwrap_or_default();
+        let received = s.matches("job received").count();
+        received.saturating_sub(s.matches("job acked").count())
+    }
+
     fn tail(&self) -> String {
         let s = std::fs::read_to_string(&self.log).unwrap_or_default();
         let lines: Vec<&str> = s.lines().collect();
@@ -657,14 +665,16 @@ fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
         })
         .collect();
 
-    // SIGKILL worker 1 while both workers hold a job (two claimed, pending jobs).
+    // SIGKILL worker 1 while both workers hold a job (two claimed, pending jobs, and one of
+    // them worker 1's: a worker whose analysis is over may pull its next job while the last
+    // one is being stored, so two claimed jobs alone could both be worker 2's).
     let t = Instant::now();
     loop {
         let busy = pg_query(
             &pg.url,
             "SELECT count(*)::text FROM jobs WHERE state = 'pending' AND attempts >= 1",
         );
-        if busy.parse::<u32>().unwrap_or(0) >= 2 {
+        if busy.parse::<u32>().unwrap_or(0) >= 2 && w1.jobs_held() >= 1 {
             break;
         }
         assert!(
