@@ -945,6 +945,118 @@ fn restart_keeps_shapes_and_calibration() {
     s.stop();
 }
 
+/// First-stage scores (`rerank: []`) of `id`'s search against the `n` nearest other shapes,
+/// by name.
+fn scan_scores(addr: SocketAddr, id: &str, n: usize) -> Vec<(String, u64)> {
+    let r = post_json(
+        addr,
+        "/v1/search",
+        &json!({"id": id, "top_k": n, "rerank": []}),
+    );
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let mut v: Vec<(String, u64)> = r.json()["hits"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|h| {
+            (
+                h["name"].as_str().unwrap().to_string(),
+                h["score"].as_f64().unwrap().to_bits(),
+            )
+        })
+        .collect();
+    v.sort();
+    v
+}
+
+/// Above `calibration_sample` shapes the calibration is computed on that many: the shapes
+/// with the smallest content hashes, exactly as a server holding only those computes it; the
+/// corpus loads again under it bit for bit, and a load that must recalibrate (stale
+/// signatures) samples the same way.
+#[test]
+fn calibration_above_the_sample_size_uses_the_smallest_content_hashes() {
+    let dir = tempfile::tempdir().unwrap();
+    let sampled = |c: &mut ServerConfig| {
+        c.calibration_sample = 4;
+        c.recalibrate_fraction = 0.0;
+    };
+    let s = Server::start(dir.path(), sampled);
+    let shapes = ingest_corpus(s.addr);
+    let info = get(s.addr, "/v1/index").json();
+    assert_eq!(info["calibrated_on"], 9, "{info}");
+    assert_eq!(info["calibration_shapes"], 4, "{info}");
+    // The sample: the 4 smallest SHA-256s, in upload order (= id order).
+    let mut by_hash: Vec<(String, usize)> = shapes
+        .iter()
+        .enumerate()
+        .map(|(i, (id, ..))| {
+            let rec = get(s.addr, &format!("/v1/shapes/{id}")).json();
+            (rec["sha256"].as_str().unwrap().to_string(), i)
+        })
+        .collect();
+    by_hash.sort();
+    let mut members: Vec<usize> = by_hash[..4].iter().map(|(_, i)| *i).collect();
+    members.sort();
+    let probe = &shapes[members[0]];
+    let whole = scan_scores(s.addr, &probe.0, 9);
+    s.stop();
+
+    // A server holding only the members calibrates on all of them: the same windows, so the
+    // same first-stage scores between members, bit for bit.
+    let only = tempfile::tempdir().unwrap();
+    let b = Server::start(only.path(), |c| c.recalibrate_fraction = 0.0);
+    let mut probe_b = String::new();
+    for &i in &members {
+        let (_, class, name, bytes) = &shapes[i];
+        let r = ingest(b.addr, name, class, bytes, "model/obj");
+        assert_eq!(r.status, 201);
+        if i == members[0] {
+            probe_b = r.json()["id"].as_str().unwrap().to_string();
+        }
+    }
+    let info_b = wait_calibrated(b.addr, 4);
+    assert_eq!(info_b["calibration_shapes"], 4);
+    let subset = scan_scores(b.addr, &probe_b, 4);
+    let names: Vec<&str> = members.iter().map(|&i| shapes[i].2.as_str()).collect();
+    let whole_members: Vec<(String, u64)> = whole
+        .iter()
+        .filter(|(n, _)| names.contains(&n.as_str()))
+        .cloned()
+        .collect();
+    assert_eq!(
+        whole_members, subset,
+        "sampled calibration = the members' own"
+    );
+    b.stop();
+
+    // Restart under the stored calibration: the same scores (shapes encoded as they are read).
+    let s = Server::start(dir.path(), sampled);
+    assert_eq!(scan_scores(s.addr, &probe.0, 9), whole);
+    let epoch = get(s.addr, "/v1/index").json()["calibration_epoch"].clone();
+    s.stop();
+
+    // Other eigenpairs: every signature is recomputed at load, then a new calibration is
+    // computed on the sample and every shape encoded again from the store.
+    let s = Server::start(dir.path(), |c| {
+        sampled(c);
+        c.eigenpairs = K + 4;
+    });
+    let info = get(s.addr, "/v1/index").json();
+    assert_eq!(info["shapes"], 9, "{info}");
+    assert_eq!(info["calibrated_on"], 9, "{info}");
+    assert_eq!(info["calibration_shapes"], 4, "{info}");
+    assert!(
+        info["calibration_epoch"].as_u64() > epoch.as_u64(),
+        "{info}"
+    );
+    assert_eq!(
+        scan_scores(s.addr, &probe.0, 9).len(),
+        8,
+        "every other shape"
+    );
+    s.stop();
+}
+
 #[test]
 fn bad_input_is_problem_json() {
     let dir = tempfile::tempdir().unwrap();

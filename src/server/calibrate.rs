@@ -9,8 +9,13 @@
 //! cluster computes each epoch once and every node ranks with the same calibration. The epoch
 //! written is the stored one + 1, or this node's + 1 when that is larger (the provisional
 //! calibration a first shape gets in memory counts as epoch 1 and is never stored).
+//!
+//! Above `calibration_sample` shapes (or on a shard node) the calibration is computed on the
+//! sample of `src/server/sample.rs` and every held shape re-encoded from its stored signature
+//! one at a time, so a recalibration never holds more than that many signatures.
 
 use super::load::moved;
+use super::sample::Sample;
 use super::state::App;
 use crate::queue::Change;
 use crate::ranking::Calibration;
@@ -20,6 +25,9 @@ use rayon::prelude::*;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
+
+/// Records per page when the stored shapes are listed for the calibration sample.
+const LIST_PAGE: usize = 1000;
 
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
@@ -130,33 +138,53 @@ impl App {
             let epoch = lock.next_epoch().max(local_epoch + 1);
             let t = Instant::now();
             let snapshot = self.scan.read().unwrap_or_else(|p| p.into_inner()).ids();
-            // Signatures are not kept in memory: read them from the store, outside the lock.
-            let sigs: Vec<(usize, Signature)> = snapshot
-                .par_iter()
-                .enumerate()
-                .filter_map(|(i, id)| self.stored_signature(id).map(|s| (i, s)))
-                .collect();
-            // A sharded node calibrates on every stored signature, in id order: what a single
-            // node holding the whole corpus computes.
-            let pool: Option<Vec<Signature>> = self.shard().map(|_| self.corpus_signatures());
-            let refs: Vec<&Signature> = match &pool {
-                Some(p) => p.iter().collect(),
-                None => sigs.iter().map(|(_, s)| s).collect(),
-            };
-            let cal = Arc::new(self.engine.calibrate(&refs, epoch));
-            let on = pool.as_ref().map_or(snapshot.len(), Vec::len);
+            let cap = self.cfg.calibration_sample;
+            let (cal, on, encoded) =
+                if self.shard().is_none() && (cap == 0 || snapshot.len() <= cap) {
+                    // Every held shape: their signatures (not kept in memory) read from the store,
+                    // outside the lock, once for the calibration and its encoding.
+                    let sigs: Vec<(usize, Signature)> = snapshot
+                        .par_iter()
+                        .enumerate()
+                        .filter_map(|(i, id)| self.stored_signature(id).map(|s| (i, s)))
+                        .collect();
+                    let cal = {
+                        let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
+                        Arc::new(self.engine.calibrate(&refs, epoch))
+                    };
+                    let layout = Layout::of(&cal);
+                    let mut encoded: Vec<Encoded> = vec![Encoded::absent(&layout); snapshot.len()];
+                    let done: Vec<(usize, Encoded)> = sigs
+                        .par_iter()
+                        .map(|(i, s)| (*i, Encoded::from_signature(s, &cal, &layout)))
+                        .collect();
+                    drop(sigs);
+                    for (i, e) in done {
+                        encoded[i] = e;
+                    }
+                    (cal, snapshot.len(), encoded)
+                } else {
+                    // A large corpus, or a shard of one: the calibration sample of every stored
+                    // shape (`src/server/sample.rs`), then each held shape re-encoded from its
+                    // stored signature, one at a time.
+                    let sample = self.stored_sample();
+                    let on = sample.offered();
+                    let cal = {
+                        let sigs = sample.into_signatures();
+                        let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
+                        Arc::new(self.engine.calibrate(&refs, epoch))
+                    };
+                    let layout = Layout::of(&cal);
+                    let encoded: Vec<Encoded> = snapshot
+                        .par_iter()
+                        .map(|id| match self.stored_signature(id) {
+                            Some(s) => Encoded::from_signature(&s, &cal, &layout),
+                            None => Encoded::absent(&layout),
+                        })
+                        .collect();
+                    (cal, on, encoded)
+                };
             let layout = Layout::of(&cal);
-            let mut encoded: Vec<Encoded> = vec![Encoded::absent(&layout); snapshot.len()];
-            let done: Vec<(usize, Encoded)> = sigs
-                .par_iter()
-                .map(|(i, s)| (*i, Encoded::from_signature(s, &cal, &layout)))
-                .collect();
-            drop(refs);
-            drop(pool);
-            drop(sigs);
-            for (i, e) in done {
-                encoded[i] = e;
-            }
             let corpus = Corpus::build(layout, &encoded);
             drop(encoded);
             match self.commit_calibration(lock, epoch, on, &cal) {
@@ -210,8 +238,37 @@ impl App {
         self.update_gauges();
     }
 
+    /// The calibration sample of every stored shape (`src/server/sample.rs`): the records
+    /// listed page by page, then the members' signatures read. A sharded node learns the whole
+    /// corpus's size here too.
+    fn stored_sample(&self) -> Sample {
+        let mut sample = Sample::new(self.cfg.calibration_sample);
+        let mut after: Option<String> = None;
+        loop {
+            let page = match self.block(self.store.list(after.as_deref(), None, LIST_PAGE)) {
+                Ok(p) => p,
+                Err(e) => {
+                    tracing::error!(error = %e, "could not list the stored shapes");
+                    break;
+                }
+            };
+            for r in &page.records {
+                sample.offer_id(&r.sha256, &r.id);
+            }
+            after = page.records.last().map(|r| r.id.clone());
+            if !page.more || after.is_none() {
+                break;
+            }
+        }
+        if let Some(sh) = self.shard() {
+            sh.set_total(sample.offered());
+        }
+        sample.fill(|id| self.stored_signature(id));
+        sample
+    }
+
     /// The stored signature of `id` (`None`, logged, when it is missing or unreadable).
-    fn stored_signature(&self, id: &str) -> Option<Signature> {
+    pub(super) fn stored_signature(&self, id: &str) -> Option<Signature> {
         match self.block(self.store.signature(id)) {
             Ok(Some(b)) => match self.engine.decode_signature(&b) {
                 Ok(s) => Some(s),

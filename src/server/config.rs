@@ -82,6 +82,10 @@ pub struct ServerConfig {
     /// Recalibrate when the index grew or shrank by more than this fraction since the last
     /// calibration.
     pub recalibrate_fraction: f64,
+    /// Most shapes a calibration is computed on (0: all). Above it, the shapes with the
+    /// smallest content hashes (see `src/server/sample.rs`): a calibration holds the whole
+    /// signature (≈ 50 KB) of every shape it is computed on.
+    pub calibration_sample: usize,
     /// Largest `top_k` and rerank shortlist accepted.
     pub max_top_k: usize,
     /// Seconds granted to in-flight requests after SIGINT/SIGTERM before they are abandoned.
@@ -122,6 +126,7 @@ impl Default for ServerConfig {
             oversized_original: "reencode".into(),
             retry_after_secs: 2,
             recalibrate_fraction: 0.1,
+            calibration_sample: 10_000,
             max_top_k: 1000,
             shutdown_grace_secs: 30.0,
             log_format: "text".into(),

@@ -455,7 +455,7 @@ pub async fn search(
 
 /// `GET /v1/index`: size, calibration, specs, queue.
 pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
-    let (n, on, epoch) = {
+    let (n, on, epoch, sampled) = {
         let s = app.scan.read().unwrap_or_else(|p| p.into_inner());
         (
             s.len(),
@@ -463,12 +463,14 @@ pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
             s.calibration()
                 .map(|c| app.engine.calibration_epoch(c))
                 .unwrap_or(0),
+            s.calibration().map_or(0, |c| c.shapes),
         )
     };
     let mut v = serde_json::json!({
         "shapes": n,
         "calibration_epoch": epoch,
         "calibrated_on": on,
+        "calibration_shapes": sampled,
         "schema_version": app.store.schema_version().await.map_err(ApiError::internal)?,
         "engine": app.engine.name(),
         "spec_key": app.engine.spec_key(),

@@ -8,11 +8,13 @@
 use super::admission::{Admission, AdmissionConfig};
 use super::config::ServerConfig;
 use super::metrics as m;
+use super::sample::Sample;
 use super::state::App;
 use crate::index::{Engine, ScanIndex, ShapeRecord};
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
 use crate::ranking::Calibration;
 use crate::rerank::{compute_payload, PayloadSpec};
+use crate::search::corpus::{Encoded, Layout};
 use crate::signature::Signature;
 use crate::spectrum::analyze;
 use crate::storage::{CalibrationLock, ShapeStore};
@@ -22,8 +24,21 @@ use std::sync::{Arc, RwLock};
 /// Signatures read from the store per page while loading.
 const LOAD_PAGE: usize = 256;
 
-/// One loaded shape: id, name, tags, signature.
-type Row = (String, String, Vec<String>, Signature);
+/// One loaded shape: id, name, tags.
+type Meta = (String, String, Vec<String>);
+
+/// What [`App::load_signatures`] read.
+struct Loaded {
+    /// This node's shapes, in id order.
+    rows: Vec<Meta>,
+    /// One per row, under the stored calibration of epoch `encoded_under` (empty when none).
+    encoded: Vec<Encoded>,
+    encoded_under: Option<u64>,
+    /// The shapes the calibration would be computed on (the whole corpus's sample).
+    sample: Sample,
+    /// Signatures recomputed for the current spec.
+    recomputed: usize,
+}
 
 impl App {
     /// Opens the state on `store`: records the specs, recomputes stale signatures, calibrates
@@ -66,8 +81,8 @@ impl App {
             cluster: None,
         };
         app.record_specs()?;
-        let (shapes, recomputed) = app.load_signatures()?;
-        let scan = app.calibrated_scan(shapes, recomputed)?;
+        let loaded = app.load_signatures()?;
+        let scan = app.calibrated_scan(loaded)?;
         *app.scan.write().unwrap_or_else(|p| p.into_inner()) = scan;
         app.update_gauges();
         Ok(app)
@@ -84,12 +99,33 @@ impl App {
         )
     }
 
-    /// Every stored signature, decoded; a stale or unreadable one is recomputed from the stored
-    /// original and written back. Returns the rows and how many were recomputed.
-    fn load_signatures(&self) -> crate::Result<(Vec<Row>, usize)> {
+    /// Reads every stored signature once, page by page: a stale or unreadable one is recomputed
+    /// from the stored original and written back; each of this node's shapes is encoded under
+    /// the stored calibration seen before reading (if any) and its signature dropped, except
+    /// those the calibration sample keeps ([`super::sample`]). So a load holds ≈ 3.4 KB per shape
+    /// plus at most `calibration_sample` signatures, not every signature at once.
+    fn load_signatures(&self) -> crate::Result<Loaded> {
+        use rayon::prelude::*;
         let spec_key = self.engine.spec_key();
-        let mut shapes = Vec::new();
-        let mut recomputed = 0usize;
+        let seen = self.stored_calibration(self.block(self.store.calibration())?.as_ref());
+        let layout = seen.as_ref().map(|(cal, _, _)| Layout::of(cal));
+        // The usual restart: the stored calibration fits the corpus. Then the sample is only
+        // listed (its signatures read later should a recomputed signature force a new
+        // calibration after all), and the load holds nothing but the encodings.
+        let expect_fit = match &seen {
+            Some((_, on, _)) => {
+                let count = self.block(self.store.count())? as usize;
+                !moved(*on, count, self.cfg.recalibrate_fraction)
+            }
+            None => false,
+        };
+        let mut l = Loaded {
+            rows: Vec::new(),
+            encoded: Vec::new(),
+            encoded_under: seen.as_ref().map(|(_, _, epoch)| *epoch),
+            sample: Sample::new(self.cfg.calibration_sample),
+            recomputed: 0,
+        };
         let mut after: Option<String> = None;
         let mut total = 0usize;
         loop {
@@ -97,9 +133,21 @@ impl App {
             let full = page.len() >= LOAD_PAGE;
             after = page.last().map(|(r, _)| r.id.clone());
             total += page.len();
+            let mut own: Vec<(ShapeRecord, Signature)> = Vec::with_capacity(page.len());
             for (rec, bytes) in page {
-                // A sharded node decodes (and refreshes) its own shard's signatures only.
+                // A sharded node decodes (and refreshes) its own shard's signatures only, and
+                // the others' that enter the calibration sample.
                 if self.shard().is_some_and(|sh| !sh.spec.holds(&rec.id)) {
+                    if expect_fit {
+                        l.sample.offer_id(&rec.sha256, &rec.id);
+                        continue;
+                    }
+                    l.sample.offer(&rec.sha256, &rec.id, || {
+                        self.engine
+                            .decode_signature(&bytes)
+                            .ok()
+                            .filter(|s| self.engine.signature_spec_key(s) == spec_key)
+                    });
                     continue;
                 }
                 let sig = match self.engine.decode_signature(&bytes) {
@@ -116,23 +164,52 @@ impl App {
                         let Some(sig) = self.recompute(rec.clone())? else {
                             continue;
                         };
-                        recomputed += 1;
+                        l.recomputed += 1;
                         sig
                     }
                 };
-                shapes.push((rec.id, rec.name, rec.tags, sig));
+                own.push((rec, sig));
+            }
+            if let (Some((cal, _, _)), Some(layout)) = (&seen, &layout) {
+                l.encoded.par_extend(
+                    own.par_iter()
+                        .map(|(_, sig)| Encoded::from_signature(sig, cal, layout)),
+                );
+            }
+            for (rec, sig) in own {
+                if expect_fit {
+                    l.sample.offer_id(&rec.sha256, &rec.id);
+                } else {
+                    l.sample.offer(&rec.sha256, &rec.id, || Some(sig));
+                }
+                l.rows.push((rec.id, rec.name, rec.tags));
             }
             if !full {
                 break;
             }
         }
-        if recomputed > 0 {
-            tracing::info!(recomputed, "signatures recomputed for the current spec");
+        if l.recomputed > 0 {
+            tracing::info!(
+                recomputed = l.recomputed,
+                "signatures recomputed for the current spec"
+            );
         }
         if let Some(sh) = self.shard() {
             sh.set_total(total);
         }
-        Ok((shapes, recomputed))
+        Ok(l)
+    }
+
+    /// A stored calibration as (calibration, shapes it was computed on, epoch); `None` when
+    /// there is none or it does not parse.
+    fn stored_calibration(
+        &self,
+        stored: Option<&crate::storage::StoredCalibration>,
+    ) -> Option<(Arc<Calibration>, usize, u64)> {
+        let s = stored?;
+        serde_json::from_slice::<Calibration>(&s.json)
+            .ok()
+            .map(|c| (Arc::new(c), s.calibrated_on as usize, s.epoch))
     }
 
     /// Recomputes the signature and payload of `rec` from its stored original (derivable data)
@@ -157,44 +234,111 @@ impl App {
         Ok(Some(sig))
     }
 
-    /// The scan over `shapes` with the stored calibration when it still fits (nothing
+    /// The scan over the loaded shapes with the stored calibration when it still fits (nothing
     /// recomputed, the size has not moved past `recalibrate_fraction`), else a new one computed
-    /// and committed as the next epoch, all under the store's calibration lock.
-    fn calibrated_scan(&self, shapes: Vec<Row>, recomputed: usize) -> crate::Result<ScanIndex> {
-        // The whole corpus's size: a sharded node's `shapes` are its shard's.
-        let n = self.shard().map_or(shapes.len(), |sh| sh.total());
+    /// on the calibration sample and committed as the next epoch, under the store's lock.
+    fn calibrated_scan(&self, l: Loaded) -> crate::Result<ScanIndex> {
+        // The whole corpus's size: a sharded node's rows are its shard's.
+        let n = self.shard().map_or(l.rows.len(), |sh| sh.total());
         if n == 0 {
             return Ok(ScanIndex::default());
         }
         let lock = self.block(self.store.lock_calibration())?;
-        let stored = lock.current().and_then(|s| {
-            serde_json::from_slice::<Calibration>(&s.json)
-                .ok()
-                .map(|c| (c, s.calibrated_on as usize))
-        });
-        let (cal, on) = match stored {
-            Some((cal, on)) if recomputed == 0 && !moved(on, n, self.cfg.recalibrate_fraction) => {
+        match self.stored_calibration(lock.current()) {
+            Some((cal, on, epoch))
+                if l.recomputed == 0 && !moved(on, n, self.cfg.recalibrate_fraction) =>
+            {
                 self.block(lock.release())?;
-                (cal, on)
+                if l.encoded_under == Some(epoch) && l.encoded.len() == l.rows.len() {
+                    let mut scan = ScanIndex::with_capacity(cal, on, l.rows.len());
+                    for ((id, name, tags), e) in l.rows.iter().zip(&l.encoded) {
+                        scan.push_encoded(id, name, tags, e);
+                    }
+                    Ok(scan)
+                } else {
+                    // Another node recalibrated while this one read.
+                    Ok(self.encode_rows(cal, on, l.rows))
+                }
             }
             _ => {
-                // A sharded node calibrates on every stored signature (read again, page by
-                // page: `src/server/shard.rs`), as a single node holding them all would.
-                let pool: Option<Vec<Signature>> = self.shard().map(|_| self.corpus_signatures());
-                let sigs: Vec<&Signature> = match &pool {
-                    Some(p) => p.iter().collect(),
-                    None => shapes.iter().map(|s| &s.3).collect(),
-                };
+                let whole = l.sample.is_whole() && self.shard().is_none();
+                let mut sample = l.sample;
+                sample.fill(|id| self.stored_signature(id));
+                let sigs = sample.into_signatures();
                 let epoch = lock.next_epoch();
-                let cal = self.engine.calibrate(&sigs, epoch);
-                let on = sigs.len();
-                drop(sigs);
-                drop(pool);
-                self.commit_calibration(lock, epoch, on, &cal)?;
-                (cal, on)
+                let cal = {
+                    let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
+                    self.engine.calibrate(&refs, epoch)
+                };
+                self.commit_calibration(lock, epoch, n, &cal)?;
+                let cal = Arc::new(cal);
+                let same = sigs.len() == l.rows.len()
+                    && sigs.iter().zip(&l.rows).all(|((a, _), (b, _, _))| a == b);
+                if whole && same {
+                    // The sample is every shape of this node: encode from it.
+                    let rows = l
+                        .rows
+                        .into_iter()
+                        .zip(sigs)
+                        .map(|((id, name, tags), (_, sig))| (id, name, tags, sig))
+                        .collect();
+                    Ok(ScanIndex::build(cal, n, rows))
+                } else {
+                    drop(sigs);
+                    Ok(self.encode_rows(cal, n, l.rows))
+                }
             }
-        };
-        Ok(ScanIndex::build(Arc::new(cal), on, shapes))
+        }
+    }
+
+    /// The scan over `rows` (in id order) under `cal`, their signatures read again from the
+    /// store page by page (a row whose signature is gone or unreadable is left out; the
+    /// replica's reconciliation settles it).
+    fn encode_rows(&self, cal: Arc<Calibration>, on: usize, rows: Vec<Meta>) -> ScanIndex {
+        use rayon::prelude::*;
+        let layout = Layout::of(&cal);
+        let mut scan = ScanIndex::with_capacity(cal.clone(), on, rows.len());
+        let mut rows = rows.into_iter().peekable();
+        let mut after: Option<String> = None;
+        while rows.peek().is_some() {
+            let page = match self.block(self.store.scan_signatures(after.as_deref(), LOAD_PAGE)) {
+                Ok(p) => p,
+                Err(e) => {
+                    tracing::error!(error = %e, "could not read the stored signatures");
+                    break;
+                }
+            };
+            let full = page.len() >= LOAD_PAGE;
+            after = page.last().map(|(r, _)| r.id.clone());
+            let mut wanted: Vec<(Meta, Vec<u8>)> = Vec::new();
+            for (rec, bytes) in page {
+                while rows.peek().is_some_and(|r| r.0 < rec.id) {
+                    rows.next(); // deleted since the first read
+                }
+                if rows.peek().is_some_and(|r| r.0 == rec.id) {
+                    wanted.push((rows.next().expect("peeked"), bytes));
+                }
+            }
+            let encoded: Vec<Option<Encoded>> = wanted
+                .par_iter()
+                .map(|(_, bytes)| {
+                    self.engine
+                        .decode_signature(bytes)
+                        .ok()
+                        .map(|s| Encoded::from_signature(&s, &cal, &layout))
+                })
+                .collect();
+            for ((id, name, tags), e) in wanted.iter().map(|(m, _)| m).zip(encoded) {
+                match e {
+                    Some(e) => scan.push_encoded(id, name, tags, &e),
+                    None => tracing::error!(id, "unreadable stored signature; left out"),
+                }
+            }
+            if !full {
+                break;
+            }
+        }
+        scan
     }
 
     /// Writes `cal` (computed on `on` shapes) as `epoch` (at least the lock's next), durably.

@@ -37,6 +37,7 @@ pub mod metrics;
 pub mod prepared;
 pub mod problem;
 pub mod router;
+mod sample;
 pub mod shard;
 pub mod state;
 pub mod web;

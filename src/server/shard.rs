@@ -36,7 +36,6 @@ use crate::ranking::QuerySpec;
 use crate::rerank::{GwPayload, SgwStage};
 use crate::search::corpus::{Encoded, Layout};
 use crate::search::{Entry, Env, Query, Stage};
-use crate::signature::Signature;
 use axum::http::StatusCode;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -45,9 +44,6 @@ use std::time::{Duration, Instant};
 
 /// Pause between two attempts of a search whose shards are at another calibration epoch.
 const RETRY_PAUSE: Duration = Duration::from_millis(50);
-
-/// Signatures read from the store per page when a sharded node calibrates.
-const PAGE: usize = 256;
 
 /// The shard a node holds, and the size of the whole corpus (the store's count, refreshed on
 /// every change and reconciliation; recalibration decisions compare with it).
@@ -160,40 +156,6 @@ impl App {
         }
         self.after_change();
         Ok(true)
-    }
-
-    /// Every stored signature, in id order (a sharded node calibrates on the whole corpus, as
-    /// a single node holding it would). Blocking; unreadable ones are skipped (logged), as a
-    /// single node's recalibration skips them.
-    pub(super) fn corpus_signatures(&self) -> Vec<Signature> {
-        let mut out = Vec::new();
-        let mut after: Option<String> = None;
-        loop {
-            let page = match self.block(self.store.scan_signatures(after.as_deref(), PAGE)) {
-                Ok(p) => p,
-                Err(e) => {
-                    tracing::error!(error = %e, "could not read the stored signatures");
-                    break;
-                }
-            };
-            let full = page.len() >= PAGE;
-            after = page.last().map(|(r, _)| r.id.clone());
-            for (rec, bytes) in page {
-                match self.engine.decode_signature(&bytes) {
-                    Ok(s) => out.push(s),
-                    Err(e) => {
-                        tracing::error!(id = %rec.id, error = %e, "unreadable stored signature")
-                    }
-                }
-            }
-            if !full {
-                break;
-            }
-        }
-        if let Some(sh) = self.shard() {
-            sh.set_total(out.len());
-        }
-        out
     }
 
     /// Subscribes this node to its shard's search requests and answers them in the background.
