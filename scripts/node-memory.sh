@@ -23,7 +23,7 @@ until curl -sf "http://127.0.0.1:$port/v1/index" -o "$log.idx"; do
 done
 t1=$(date +%s.%N)
 peak() { grep VmHWM /proc/$pid/status | tr -s ' ' | cut -d' ' -f2-; }
-echo "ready after $(echo "$t1 - $t0" | bc) s, peak $(peak)"
+echo "ready after $(awk "BEGIN {printf \"%.1f\", $t1 - $t0}") s, peak $(peak)"
 python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print({k: d.get(k) for k in ['shapes','calibration_epoch','calibrated_on','calibration_shapes']})" "$log.idx"
 rm -f "$log.idx"
 if [[ $mode == recal ]]; then
@@ -32,5 +32,5 @@ if [[ $mode == recal ]]; then
     "http://127.0.0.1:$port/v1/shapes?name=recalibration-probe"
   until grep -q '"recalibrated"\|recalibrated epoch' "$log"; do sleep 0.5; done
   t1=$(date +%s.%N)
-  echo "recalibrated after $(echo "$t1 - $t0" | bc) s, peak $(peak)"
+  echo "recalibrated after $(awk "BEGIN {printf \"%.1f\", $t1 - $t0}") s, peak $(peak)"
 fi
