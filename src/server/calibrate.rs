@@ -174,14 +174,7 @@ impl App {
                         let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
                         Arc::new(self.engine.calibrate(&refs, epoch))
                     };
-                    let layout = Layout::of(&cal);
-                    let encoded: Vec<Encoded> = snapshot
-                        .par_iter()
-                        .map(|id| match self.stored_signature(id) {
-                            Some(s) => Encoded::from_signature(&s, &cal, &layout),
-                            None => Encoded::absent(&layout),
-                        })
-                        .collect();
+                    let encoded = self.reencoded(&snapshot, &cal);
                     (cal, on, encoded)
                 };
             let layout = Layout::of(&cal);
@@ -206,19 +199,24 @@ impl App {
         }
     }
 
+    /// The shapes `ids` encoded under `cal` from their stored signatures, each read, encoded
+    /// and dropped in turn (absent when missing or unreadable).
+    fn reencoded(&self, ids: &[String], cal: &Calibration) -> Vec<Encoded> {
+        let layout = Layout::of(cal);
+        ids.par_iter()
+            .map(|id| match self.stored_signature(id) {
+                Some(s) => Encoded::from_signature(&s, cal, &layout),
+                None => Encoded::absent(&layout),
+            })
+            .collect()
+    }
+
     /// Installs `cal` (computed on `on` shapes): every held shape re-encoded from its stored
     /// signature. Blocking, CPU-bound.
     pub(super) fn install(&self, cal: Arc<Calibration>, on: usize) {
         let snapshot = self.scan.read().unwrap_or_else(|p| p.into_inner()).ids();
-        let layout = Layout::of(&cal);
-        let encoded: Vec<Encoded> = snapshot
-            .par_iter()
-            .map(|id| match self.stored_signature(id) {
-                Some(s) => Encoded::from_signature(&s, &cal, &layout),
-                None => Encoded::absent(&layout),
-            })
-            .collect();
-        let corpus = Corpus::build(layout, &encoded);
+        let encoded = self.reencoded(&snapshot, &cal);
+        let corpus = Corpus::build(Layout::of(&cal), &encoded);
         drop(encoded);
         let epoch = self.engine.calibration_epoch(&cal);
         self.install_built(cal, on, &snapshot, corpus);
