@@ -7,8 +7,9 @@
 //!   shapes only ([`App::foreign_change`], `src/server/load.rs`, `src/server/cluster.rs`).
 //!   Several nodes may serve one shard: the queue group lets one of them answer each request.
 //! * **Calibration stays global**: a sharded node decides and computes recalibrations on the
-//!   whole stored corpus — its size is the store's count, the calibration is computed from
-//!   every stored signature in id order (what a single node holding everything computes) under
+//!   whole stored corpus — its size is the store's count, the calibration is computed from the
+//!   calibration sample of every stored shape (`src/server/sample.rs`: all of them up to
+//!   `calibration_sample`, in id order — what a single node holding everything computes) under
 //!   the store's lock, and every node installs the stored epoch. A shard answers only when its
 //!   calibration is the coordinator's (epoch and fingerprint), so scores are comparable.
 //! * **Coordinator** ([`App::sharded_search`]): the query is encoded once under this node's
