@@ -71,7 +71,8 @@ impl Sample {
         }
     }
 
-    /// Reads the members' missing signatures with `read` (in parallel); unreadable ones leave.
+    /// Reads the members' missing signatures with `read` (in parallel); an unreadable one stays
+    /// without, and [`Sample::into_signatures`] leaves it out.
     pub(super) fn fill(&mut self, read: impl Fn(&str) -> Option<Signature> + Sync) {
         use rayon::prelude::*;
         let missing: Vec<(String, String)> = self
@@ -88,15 +89,8 @@ impl Sample {
             })
             .collect();
         for (sha, sig) in read {
-            match sig {
-                Some(s) => {
-                    if let Some(m) = self.members.get_mut(&sha) {
-                        m.1 = Some(s);
-                    }
-                }
-                None => {
-                    self.members.remove(&sha);
-                }
+            if let (Some(s), Some(m)) = (sig, self.members.get_mut(&sha)) {
+                m.1 = Some(s);
             }
         }
     }
@@ -190,20 +184,38 @@ mod tests {
 
     #[test]
     fn one_change_moves_at_most_one_member_and_fill_reads_the_deferred() {
+        let id = |i: usize| format!("{i:016x}");
+        let mut by_hash: Vec<usize> = (0..30).collect();
+        by_hash.sort_by_key(|&i| sha(i));
+        // Deleting a member (the second smallest hash) lets the sixth in, and nothing else moves.
+        let gone = by_hash[1];
         let mut a = Sample::new(5);
         let mut b = Sample::new(5);
         for i in 0..30 {
-            a.offer_id(&sha(i), &format!("{i:016x}"));
-            if i != 3 {
-                b.offer_id(&sha(i), &format!("{i:016x}"));
+            a.offer_id(&sha(i), &id(i));
+            if i != gone {
+                b.offer_id(&sha(i), &id(i));
             }
         }
-        // Unreadable members leave.
-        a.fill(|id| (id != "0000000000000000").then(|| sig(0)));
         b.fill(|_| Some(sig(0)));
+        let mut before: Vec<String> = a.members.values().map(|(i, _)| i.clone()).collect();
+        // An unreadable member is left out of the signatures.
+        let unreadable = id(by_hash[0]);
+        a.fill(|x| (x != unreadable).then(|| sig(0)));
         let (a, b) = (ids(a), ids(b));
-        let moved = a.iter().filter(|id| !b.contains(id)).count();
-        assert!(moved <= 2, "{a:?} vs {b:?}");
-        assert!(!a.contains(&"0000000000000000".to_string()));
+        before.retain(|x| *x != unreadable);
+        before.sort();
+        assert_eq!(a, before, "only the unreadable member is left out");
+        let only_a: Vec<&String> = a.iter().filter(|x| !b.contains(x)).collect();
+        let only_b: Vec<&String> = b.iter().filter(|x| !a.contains(x)).collect();
+        assert_eq!(only_a, vec![&id(gone)]);
+        let mut want_b = vec![id(by_hash[0]), id(by_hash[5])];
+        want_b.sort();
+        let mut got_b: Vec<String> = only_b.into_iter().cloned().collect();
+        got_b.sort();
+        assert_eq!(
+            got_b, want_b,
+            "the sixth enters (and the unreadable one stays in b)"
+        );
     }
 }
