@@ -1312,6 +1312,17 @@ fn queue_overhead() {
     // of the queue. `SHAPESEEK_OVERHEAD_RECALIBRATE_FRACTION` sets another.
     let fraction =
         std::env::var("SHAPESEEK_OVERHEAD_RECALIBRATE_FRACTION").unwrap_or_else(|_| "0.1".into());
+    // One side's uploads, with the CPU the machine, the node and the worker (if any) used.
+    let measure = |addr: SocketAddr, node: &Proc, worker: Option<&Proc>| {
+        let busy = machine_busy_secs();
+        let secs = upload_all(addr, &meshes, 4);
+        Pass {
+            secs,
+            machine_cpu: machine_busy_secs() - busy,
+            node_cpu: node.cpu_secs(),
+            worker_cpu: worker.map_or(0.0, Proc::cpu_secs),
+        }
+    };
     let direct_pass = |r: usize| {
         let url = db(&format!("bench_direct_{r}"));
         let a: SocketAddr = format!("127.0.0.1:{}", free_port()).parse().unwrap();
@@ -1325,14 +1336,7 @@ fn queue_overhead() {
             tmp.join(format!("direct-{r}.log")),
         );
         wait_ready(a, &node);
-        let busy = machine_busy_secs();
-        let secs = upload_all(a, &meshes, 4);
-        Pass {
-            secs,
-            machine_cpu: machine_busy_secs() - busy,
-            node_cpu: node.cpu_secs(),
-            worker_cpu: 0.0,
-        }
+        measure(a, &node, None)
     };
     let queued_pass = |r: usize| {
         let url = db(&format!("bench_queued_{r}"));
@@ -1351,14 +1355,7 @@ fn queue_overhead() {
             ])),
             tmp.join(format!("worker-{r}.log")),
         );
-        let busy = machine_busy_secs();
-        let secs = upload_all(qa, &meshes, 4);
-        Pass {
-            secs,
-            machine_cpu: machine_busy_secs() - busy,
-            node_cpu: node.cpu_secs(),
-            worker_cpu: worker.cpu_secs(),
-        }
+        measure(qa, &node, Some(&worker))
     };
     // Rounds in the order direct, queued | queued, direct | …, so that a drift of the machine
     // over the run (warming, other load) falls on both sides alike.
