@@ -593,7 +593,7 @@ fn perturbed(e: &Encoded, layout: &Layout, i: usize) -> Encoded {
 fn run_search(b: &SearchBench) -> Result<()> {
     use shapeseek::index::ScanIndex;
     use shapeseek::presets::default_config;
-    use shapeseek::ranking::calibrate;
+    use shapeseek::ranking::calibrate_with;
     use shapeseek::search::{rank_all, top_k, Query};
     use std::sync::Arc;
     let mut cfg = default_config();
@@ -634,10 +634,11 @@ fn run_search(b: &SearchBench) -> Result<()> {
             .into_par_iter()
             .map(|i| synthetic_signature(&bases, i, b.spread))
             .collect();
-        let cal = Arc::new(calibrate(
+        let cal = Arc::new(calibrate_with(
             &sigs.iter().collect::<Vec<_>>(),
             &cfg.signature,
             1,
+            &cfg.calibration,
         ));
         let layout = Layout::of(&cal);
         let rows: Vec<Encoded> = sigs

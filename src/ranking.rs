@@ -201,8 +201,9 @@ pub struct QuerySpec {
     pub aggregation: Aggregation,
 }
 
-/// Options of [`calibrate_with`].
+/// Options of [`calibrate_with`]. Missing fields deserialize to the paper's values.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default)]
 pub struct CalibrationOptions {
     /// Number of bins.
     pub bins: usize,
@@ -219,6 +220,40 @@ impl Default for CalibrationOptions {
             bandwidth_bins: 1.0,
             percentile: DEFAULT_PERCENTILE,
         }
+    }
+}
+
+impl CalibrationOptions {
+    /// Whether these are the paper's values (256 bins, one-bin bandwidth, 95th percentile).
+    pub fn is_paper(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// Whether `cal` was computed with these options (bins, bandwidth and percentile).
+    pub fn made(&self, cal: &Calibration) -> bool {
+        cal.bins == self.bins.max(1)
+            && cal.bandwidth_bins == self.bandwidth_bins
+            && cal.percentile == self.percentile
+    }
+
+    /// Why these options cannot calibrate, if they cannot.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.percentile > 0.0 && self.percentile <= 1.0) {
+            return Err(format!(
+                "percentile must be in (0, 1], got {}",
+                self.percentile
+            ));
+        }
+        if !(self.bandwidth_bins >= 0.0 && self.bandwidth_bins.is_finite()) {
+            return Err(format!(
+                "bandwidth_bins must be ≥ 0, got {}",
+                self.bandwidth_bins
+            ));
+        }
+        if self.bins == 0 {
+            return Err("bins must be ≥ 1".into());
+        }
+        Ok(())
     }
 }
 

@@ -969,6 +969,70 @@ fn scan_scores(addr: SocketAddr, id: &str, n: usize) -> Vec<(String, u64)> {
     v
 }
 
+/// A stored calibration made with other calibration options than the default's (here the
+/// paper's 95th-percentile window, as an index calibrated before the default's 0.90) is not
+/// scanned with: the restart recalibrates under the default's options and stores that.
+#[test]
+fn a_calibration_with_another_window_percentile_is_recomputed_at_start() {
+    fn percentiles(v: &mut Value, set: Option<f64>, seen: &mut Vec<f64>) {
+        match v {
+            Value::Object(m) => {
+                for (k, x) in m.iter_mut() {
+                    if k == "percentile" {
+                        seen.push(x.as_f64().unwrap());
+                        if let Some(p) = set {
+                            *x = json!(p);
+                        }
+                    } else {
+                        percentiles(x, set, seen);
+                    }
+                }
+            }
+            Value::Array(a) => a.iter_mut().for_each(|x| percentiles(x, set, seen)),
+            _ => {}
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |_| {});
+    let shapes = ingest_corpus(s.addr);
+    let before = get(s.addr, "/v1/index").json();
+    s.stop();
+    {
+        let store = shapeseek::index::Store::open(dir.path()).unwrap();
+        let mut doc: Value =
+            serde_json::from_slice(&store.calibration().unwrap().unwrap()).unwrap();
+        let mut seen = Vec::new();
+        percentiles(&mut doc, Some(0.95), &mut seen);
+        assert_eq!(
+            seen,
+            vec![shapeseek::presets::DEFAULT_WINDOW_PERCENTILE],
+            "the server calibrates with the default's window"
+        );
+        store
+            .set_calibration(&serde_json::to_vec(&doc).unwrap())
+            .unwrap();
+    }
+    let s = Server::start(dir.path(), |_| {});
+    let after = get(s.addr, "/v1/index").json();
+    assert_eq!(after["shapes"], 9);
+    assert!(
+        after["calibration_epoch"].as_u64() > before["calibration_epoch"].as_u64(),
+        "recalibrated at start: {before} → {after}"
+    );
+    let hits = post_json(
+        s.addr,
+        "/v1/search",
+        &json!({"id": shapes[0].0, "top_k": 4}),
+    );
+    assert_eq!(hits.status, 200);
+    s.stop();
+    let store = shapeseek::index::Store::open(dir.path()).unwrap();
+    let mut doc: Value = serde_json::from_slice(&store.calibration().unwrap().unwrap()).unwrap();
+    let mut seen = Vec::new();
+    percentiles(&mut doc, None, &mut seen);
+    assert_eq!(seen, vec![shapeseek::presets::DEFAULT_WINDOW_PERCENTILE]);
+}
+
 /// Above `calibration_sample` shapes the calibration is computed on that many: the shapes
 /// with the smallest content hashes, exactly as a server holding only those computes it; the
 /// corpus loads again under it bit for bit, and a load that must recalibrate (stale

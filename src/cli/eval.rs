@@ -80,10 +80,11 @@ pub struct EvalArgs {
     /// Laplace–Beltrami operator: cotangent or intrinsic-delaunay.
     #[arg(long, default_value = "cotangent")]
     pub laplacian: String,
-    /// Histogram window: this fraction of the pooled corpus distances (paper: 0.95). Smaller
-    /// windows keep only the short-range part of every distribution (truncated distance range).
-    #[arg(long, default_value_t = 0.95)]
-    pub window_percentile: f64,
+    /// Histogram window: this fraction of the pooled corpus distances, for every configuration
+    /// of the run. Without it each configuration uses its own: the paper's 0.95, `default`'s
+    /// 0.90. Smaller windows keep only the short-range part of every distribution.
+    #[arg(long)]
+    pub window_percentile: Option<f64>,
     /// Keep every mesh at its own size (no unit-area normalisation): the "raw" runs that show
     /// what scaling does to each kernel (paper Table 2's Scale row).
     #[arg(long)]

@@ -107,8 +107,9 @@ pub struct EvalOptions {
     pub sample_seed: u64,
     /// Laplace–Beltrami operator.
     pub laplacian: crate::laplace::LaplacianKind,
-    /// Histogram window: this fraction of the pooled corpus distances (paper: 0.95).
-    pub window_percentile: f64,
+    /// Histogram window: this fraction of the pooled corpus distances for every configuration
+    /// (`None`: each configuration's own, [`crate::presets::Config::calibration`]).
+    pub window_percentile: Option<f64>,
     /// Keep every mesh at its own size (no unit-area normalisation).
     pub no_normalize: bool,
     /// Write every configuration's all-pairs dissimilarity matrix (re-ranked rows: ranks) as
@@ -142,7 +143,7 @@ impl EvalOptions {
             sample_seed: 0,
             laplacian: crate::laplace::LaplacianKind::Cotangent,
             no_normalize: false,
-            window_percentile: 0.95,
+            window_percentile: None,
             matrices: None,
             loco: None,
             check_encoding: false,
@@ -280,7 +281,33 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
             }
         }
     }
+    if let Some(p) = args.window_percentile {
+        for c in &mut configs {
+            c.calibration.percentile = p;
+        }
+    }
+    for c in &configs {
+        c.calibration.validate().map_err(|e| {
+            Error::InvalidArgument(format!("configuration {}: calibration: {e}", c.name))
+        })?;
+    }
     let (specs, group_of) = union_specs(&configs);
+    // One calibration (and corpus) per signature group and calibration options.
+    let mut cal_groups: Vec<(usize, ranking::CalibrationOptions)> = Vec::new();
+    let cal_of: Vec<usize> = configs
+        .iter()
+        .zip(&group_of)
+        .map(|(c, &g)| {
+            let key = (g, c.calibration.clone());
+            cal_groups
+                .iter()
+                .position(|k| *k == key)
+                .unwrap_or_else(|| {
+                    cal_groups.push(key);
+                    cal_groups.len() - 1
+                })
+        })
+        .collect();
     let spec_keys: Vec<String> = specs.iter().map(|s| s.key()).collect();
     let cache_dir = if args.no_cache {
         None
@@ -370,29 +397,20 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
 
     // Calibration and histograms, per union specification.
     let t_cal = Instant::now();
-    let cals: Vec<ranking::Calibration> = specs
+    let cals: Vec<ranking::Calibration> = cal_groups
         .iter()
-        .enumerate()
-        .map(|(g, spec)| {
+        .map(|(g, copts)| {
             let sigs: Vec<&Signature> = ok
                 .iter()
-                .map(|&i| &shape_results[i].as_ref().unwrap()[g])
+                .map(|&i| &shape_results[i].as_ref().unwrap()[*g])
                 .collect();
-            ranking::calibrate_with(
-                &sigs,
-                spec,
-                0,
-                &ranking::CalibrationOptions {
-                    percentile: args.window_percentile,
-                    ..Default::default()
-                },
-            )
+            ranking::calibrate_with(&sigs, &specs[*g], 0, copts)
         })
         .collect();
     let corpora: Vec<Corpus> = cals
         .iter()
-        .enumerate()
-        .map(|(g, cal)| {
+        .zip(&cal_groups)
+        .map(|(cal, &(g, _))| {
             let layout = Layout::of(cal);
             let rows: Vec<Encoded> = shape_results
                 .par_iter()
@@ -407,8 +425,8 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
     // The f64 histograms of the definition, for `--check-encoding` only.
     let prepared: Vec<Vec<Option<ranking::Prepared>>> = if args.check_encoding {
         cals.iter()
-            .enumerate()
-            .map(|(g, cal)| {
+            .zip(&cal_groups)
+            .map(|(cal, &(g, _))| {
                 shape_results
                     .par_iter()
                     .map(|r| {
@@ -470,7 +488,7 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         .collect();
     let strengths: Vec<i64> = manifest.entries.iter().map(|e| e.strength).collect();
     let mut results = Vec::with_capacity(configs.len());
-    let mut channel_cache: Vec<ChannelMatrices> = (0..specs.len())
+    let mut channel_cache: Vec<ChannelMatrices> = (0..cal_groups.len())
         .map(|_| ChannelMatrices::default())
         .collect();
     let (mut scoring_s, mut metrics_s) = (0.0, 0.0);
@@ -486,7 +504,7 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         .collect();
     let mut check_rows = Vec::new();
     for (c, cfg) in configs.iter().enumerate() {
-        let g = group_of[c];
+        let g = cal_of[c];
         let corpus = &corpora[g];
         let t = Instant::now();
         let dist = channel_cache[g].aggregate(corpus, &included, &cfg.query);

@@ -120,7 +120,20 @@ impl Engine {
 
     /// Calibrates the histogram windows on a set of signatures.
     pub fn calibrate(&self, sigs: &[&Signature], epoch: u64) -> Calibration {
-        ranking::calibrate(sigs, &self.config.signature, epoch)
+        ranking::calibrate_with(
+            sigs,
+            &self.config.signature,
+            epoch,
+            &self.config.calibration,
+        )
+    }
+
+    /// A stored calibration (its JSON) this engine can scan with: `None` when it does not parse
+    /// or was computed with other calibration options (bins, bandwidth, window percentile) than
+    /// the configuration's, e.g. by a release with another default, which then recalibrates.
+    pub fn stored_calibration(&self, json: &[u8]) -> Option<Calibration> {
+        let cal = serde_json::from_slice::<Calibration>(json).ok()?;
+        self.config.calibration.made(&cal).then_some(cal)
     }
 
     /// The epoch of a calibration.
@@ -159,6 +172,56 @@ impl Engine {
 mod tests {
     use super::*;
     use crate::mesh::topology::HandleCutOptions;
+
+    /// The engine scans with a stored calibration only when it was made with the
+    /// configuration's calibration options (the default's window is the 90th percentile, the
+    /// paper's the 95th); and the default's JSON carries them while a paper configuration's
+    /// JSON stays as it was.
+    #[test]
+    fn a_stored_calibration_must_have_the_configurations_options() {
+        let e = Engine::new();
+        assert_eq!(
+            e.config.calibration.percentile,
+            presets::DEFAULT_WINDOW_PERCENTILE
+        );
+        let own = e.calibrate(&[], 3);
+        assert_eq!(own.percentile, 0.9);
+        let json = serde_json::to_vec(&own).unwrap();
+        assert_eq!(e.stored_calibration(&json), Some(own.clone()));
+        let paper = ranking::calibrate(&[], &e.config.signature, 3);
+        assert_eq!(paper.percentile, ranking::DEFAULT_PERCENTILE);
+        assert_eq!(
+            e.stored_calibration(&serde_json::to_vec(&paper).unwrap()),
+            None
+        );
+        let mut other_bins = own;
+        other_bins.bins = 128;
+        assert_eq!(
+            e.stored_calibration(&serde_json::to_vec(&other_bins).unwrap()),
+            None
+        );
+        assert_eq!(e.stored_calibration(b"not json"), None);
+
+        let v = serde_json::to_value(&e.config).unwrap();
+        assert_eq!(v["calibration"]["percentile"], 0.9);
+        let back: Config = serde_json::from_value(v).unwrap();
+        assert_eq!(back, e.config);
+        let p = presets::config_by_name("Heat-L2-nL1-Sum[t=0.016..0.1]").unwrap();
+        assert!(p.calibration.is_paper());
+        assert!(serde_json::to_value(&p)
+            .unwrap()
+            .get("calibration")
+            .is_none());
+        let partial: ranking::CalibrationOptions =
+            serde_json::from_str(r#"{"percentile": 0.8}"#).unwrap();
+        assert_eq!((partial.bins, partial.percentile), (256, 0.8));
+        assert!(partial.validate().is_ok());
+        let bad = ranking::CalibrationOptions {
+            percentile: 1.5,
+            ..Default::default()
+        };
+        assert!(bad.validate().is_err());
+    }
 
     #[test]
     fn handle_cutting_changes_the_spec_key_and_nothing_else_does() {

@@ -123,8 +123,8 @@ impl App {
                 if !(fits && newer) {
                     return None;
                 }
-                serde_json::from_slice::<Calibration>(&c.json)
-                    .ok()
+                self.engine
+                    .stored_calibration(&c.json)
                     .map(|cal| (cal, c.calibrated_on as usize))
             });
             provisional = false;

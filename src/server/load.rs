@@ -201,14 +201,15 @@ impl App {
     }
 
     /// A stored calibration as (calibration, shapes it was computed on, epoch); `None` when
-    /// there is none or it does not parse.
+    /// there is none, it does not parse, or the configuration calibrates otherwise
+    /// ([`crate::index::Engine::stored_calibration`]).
     fn stored_calibration(
         &self,
         stored: Option<&crate::storage::StoredCalibration>,
     ) -> Option<(Arc<Calibration>, usize, u64)> {
         let s = stored?;
-        serde_json::from_slice::<Calibration>(&s.json)
-            .ok()
+        self.engine
+            .stored_calibration(&s.json)
             .map(|c| (Arc::new(c), s.calibrated_on as usize, s.epoch))
     }
 
