@@ -574,7 +574,7 @@ fn max_sig_diff(a: &shapeseek::signature::Signature, b: &shapeseek::signature::S
 #[test]
 fn ranking_equals_library_ranking() {
     use shapeseek::presets::default_config;
-    use shapeseek::ranking::{calibrate, QuerySpec};
+    use shapeseek::ranking::{calibrate_with, QuerySpec};
     use shapeseek::search::{Corpus, Encoded, Layout, Query};
     use shapeseek::signature::{compute_signature, Signature};
 
@@ -612,7 +612,7 @@ fn ranking_equals_library_ranking() {
     }
 
     let refs: Vec<&Signature> = sigs.iter().collect();
-    let cal = calibrate(&refs, &cfg.signature, 0);
+    let cal = calibrate_with(&refs, &cfg.signature, 0, &cfg.calibration);
     let layout = Layout::of(&cal);
     let rows: Vec<Encoded> = sigs
         .iter()
