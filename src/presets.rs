@@ -365,8 +365,8 @@ pub fn default_config() -> Config {
 /// (`docs/quality.md` §12): among 0.85, 0.90, 0.95 and 0.99 (each with the default and 14
 /// variants of its other choices) the protocol picks 0.90 in 7 of the 8 folds (0.85 in the
 /// eighth); held-out mean All 94.38 → 95.00 and iso+topology 92.09 → 95.97 for the default held
-/// fixed, the worst fold 90.92 → 92.86. A narrower window leaves the longest distances, the ones
-/// a weld or a missing part moves most, in the last bin.
+/// fixed, the worst fold 90.92 → 92.86. A narrower window drops more of the longest distances
+/// (mass beyond the window is not binned), the ones a weld or a missing part moves most.
 pub const DEFAULT_WINDOW_PERCENTILE: f64 = 0.9;
 
 /// Radii (unit-area units, after the Weyl scaling) of the default's short-range channels, one
