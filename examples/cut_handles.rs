@@ -12,7 +12,7 @@
 //! written to `OUT_DIR/meshes/<id>.obj`; `OUT_DIR/manifest.csv` lists every shape, pointing at the
 //! cut mesh or at the original file (absolute path, so eval's cache serves the unchanged ones),
 //! and `OUT_DIR/report.csv` gives per shape the genus before/after, the cuts, the area kept and
-//! every loop examined (`length_rel:neck_aspect:handle_rel:cut`, `;`-separated).
+//! every loop examined (`length_rel:neck_aspect:side_aspect:handle_rel:cut`, `;`-separated).
 //! `{"max_cuts": 0}` only measures (genus, no loop features); `{"max_loop_rel": 1e9,
 //! "max_neck_aspect": 0, ...}` lists every basis loop's features without cutting.
 
@@ -96,9 +96,10 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
             .iter()
             .map(|l| {
                 format!(
-                    "{:.4}:{}:{}:{}",
+                    "{:.4}:{}:{}:{}:{}",
                     l.length_rel,
                     l.neck_aspect.map_or("-".into(), |a| format!("{a:.3}")),
+                    l.side_aspect.map_or("-".into(), |a| format!("{a:.3}")),
                     l.handle_rel.map_or("-".into(), |a| format!("{a:.3}")),
                     u8::from(l.cut)
                 )

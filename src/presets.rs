@@ -376,17 +376,21 @@ pub const DEFAULT_WINDOW_PERCENTILE: f64 = 0.9;
 #[allow(clippy::approx_constant)] // 3.14 is a measured percentile, not π.
 pub const SHORT_RANGE_RADII: [f64; 3] = [3.14, 2.1, 1.09];
 
-/// The default's handle cutting: a basis loop is cut when `L/√A ≤ 0.5` and its neck aspect
-/// `≤ 3` (the other options at their defaults). Why these (`docs/quality.md` §9): on bench/dev
-/// the weld tunnel loops have `L/√A` 0.04–0.27 and aspects 0–10 (median 2.1); the genuine
-/// handles of the tests have aspect ≥ 3.2 (mug 3.24 at `L/√A` 0.24, a ring of arms on a body
-/// 5.4 at 0.13, torus 5.6 at 0.41, thick ring 5.4 at 0.36). A length-only rule cuts the ring of
-/// arms (≤ 0.2) or the mug (≤ 0.3); among the rules that keep all four, this one was chosen by
-/// the leave-one-class-out protocol in 7 of 8 folds (the eighth: `L/√A ≤ 0.3`, same aspect,
-/// tied to 0.01 held-in points).
+/// The default's handle cutting: a basis loop with `L/√A ≤ 0.5` is cut when its neck aspect
+/// `(s₊ + s₋)/L` is `≤ 3` or its side aspect `min(s₊, s₋)/L` is `≤ 0.9` (the other options at
+/// their defaults). Why these (`docs/quality.md` §9 and §13): on bench/dev the weld tunnel loops
+/// have `L/√A` 0.04–0.27 and aspects 0–10 (median 2.1); the genuine handles of the tests have
+/// aspect ≥ 3.2 (mug 3.24 at `L/√A` 0.24, a ring of arms on a body 5.4 at 0.13, torus 5.6 at
+/// 0.41, thick ring 5.4 at 0.36) and side aspect ≥ 1.12 (mug 1.13, arms 1.49, thick ring 2.68,
+/// torus 2.80). A length-only rule cuts the ring of arms (≤ 0.2) or the mug (≤ 0.3); among the
+/// rules that keep all four, the two-sided test was chosen by the leave-one-class-out protocol in
+/// 7 of 8 folds (§9), and the side test added to it in all 8 folds (§13): a limb welded to the
+/// body (a hand to a thigh) flares into the body at once on one side and runs along the limb on
+/// the other, so only one side is short.
 pub const DEFAULT_HANDLE_CUT: HandleCutOptions = HandleCutOptions {
     max_loop_rel: 0.5,
     max_neck_aspect: 3.0,
+    max_side_aspect: 0.9,
     free_loop_rel: 0.0,
     growth: 2.0,
     roots: 8,

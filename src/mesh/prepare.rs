@@ -559,18 +559,8 @@ fn validate_options(opts: &PrepareOptions) -> Result<()> {
                     .into(),
             ));
         }
-        let valid = c.growth > 1.0
-            && c.growth.is_finite()
-            && c.max_loop_rel >= 0.0
-            && c.max_neck_aspect >= 0.0
-            && c.free_loop_rel >= 0.0;
-        if !valid {
-            return Err(Error::InvalidArgument(format!(
-                "cut_handles: growth must be > 1 and the thresholds >= 0, got growth {}, \
-                 max_loop_rel {}, max_neck_aspect {}, free_loop_rel {}",
-                c.growth, c.max_loop_rel, c.max_neck_aspect, c.free_loop_rel
-            )));
-        }
+        c.validate()
+            .map_err(|e| Error::InvalidArgument(format!("cut_handles: {e}")))?;
     }
     Ok(())
 }

@@ -117,9 +117,29 @@ fn vertex_areas(mesh: &Mesh) -> Vec<f64> {
     a
 }
 
-/// Neck extents `s₊ + s₋` and the shortest distance between the two sides over the rest of the
-/// surface, on the split mesh (`plus` = original cycle vertices, `minus` = their copies).
-fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> Option<(f64, f64)> {
+/// The neck of a split loop, relative to its length `L`: the extents `s₊ / L` and `s₋ / L` of its
+/// two sides, and the shortest distance between the two sides over the rest of the surface
+/// (`across / L`), on the split mesh (`plus` = original cycle vertices, `minus` = their copies).
+struct Neck {
+    /// `s₊ / L`, `s₋ / L`.
+    sides: [f64; 2],
+    /// `across / L`.
+    across: f64,
+}
+
+impl Neck {
+    /// `(s₊ + s₋) / L`, the neck aspect.
+    fn aspect(&self) -> f64 {
+        self.sides[0] + self.sides[1]
+    }
+
+    /// `min(s₊, s₋) / L`: how soon the surface flares on the side that flares first.
+    fn side_aspect(&self) -> f64 {
+        self.sides[0].min(self.sides[1])
+    }
+}
+
+fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> Option<Neck> {
     let t = Topo::build(split).ok()?;
     let (dp, _) = dijkstra(&t, plus);
     let (dm, _) = dijkstra(&t, minus);
@@ -141,12 +161,15 @@ fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> 
         }
         last
     };
-    let s = extent(&dp, &dm) + extent(&dm, &dp);
+    let sides = [extent(&dp, &dm) / length, extent(&dm, &dp) / length];
     let across = minus
         .iter()
         .map(|&v| dp[v as usize])
         .fold(f64::INFINITY, f64::min);
-    Some((s / length, across / length))
+    Some(Neck {
+        sides,
+        across: across / length,
+    })
 }
 
 /// Drops faces touching any of `verts` and compacts unused vertices; also returns, per vertex of
@@ -210,17 +233,7 @@ pub fn cut_handles_with_map(
     mesh: &Mesh,
     opts: &HandleCutOptions,
 ) -> Result<(Mesh, HandleCutReport, Vec<Option<u32>>), TopologyError> {
-    if !(opts.growth > 1.0 && opts.growth.is_finite()) {
-        return Err(TopologyError::InvalidOption(format!(
-            "growth must be > 1, got {}",
-            opts.growth
-        )));
-    }
-    if !(opts.max_loop_rel >= 0.0 && opts.max_neck_aspect >= 0.0 && opts.free_loop_rel >= 0.0) {
-        return Err(TopologyError::InvalidOption(
-            "thresholds must be ≥ 0".into(),
-        ));
-    }
+    opts.validate()?;
     let t0 = Topo::build(mesh)?;
     let before = stats_of(mesh, &t0);
     let area0 = mesh.area();
@@ -242,6 +255,7 @@ pub fn cut_handles_with_map(
                 length: lp.length,
                 length_rel: rel,
                 neck_aspect: None,
+                side_aspect: None,
                 handle_rel: None,
                 vertices: lp.vertices.len(),
                 cut: false,
@@ -254,12 +268,14 @@ pub fn cut_handles_with_map(
                 let sp = split(&cur, &lp.vertices, &side);
                 let minus: Vec<u32> =
                     (cur.vertices.len() as u32..sp.vertices.len() as u32).collect();
-                if let Some((aspect, across)) =
-                    neck(&sp, &lp.vertices, &minus, lp.length, opts.growth)
-                {
-                    rep.neck_aspect = Some(aspect);
-                    rep.handle_rel = Some(across);
-                    if aspect <= opts.max_neck_aspect || rel <= opts.free_loop_rel {
+                if let Some(nk) = neck(&sp, &lp.vertices, &minus, lp.length, opts.growth) {
+                    rep.neck_aspect = Some(nk.aspect());
+                    rep.side_aspect = Some(nk.side_aspect());
+                    rep.handle_rel = Some(nk.across);
+                    if nk.aspect() <= opts.max_neck_aspect
+                        || (opts.max_side_aspect > 0.0 && nk.side_aspect() <= opts.max_side_aspect)
+                        || rel <= opts.free_loop_rel
+                    {
                         rep.cut = true;
                         let mut band = lp.vertices.clone();
                         band.extend(&minus);

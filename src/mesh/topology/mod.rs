@@ -49,10 +49,14 @@
 //! short. Both are measured on the loop `γ`: `L / √A`, and the **neck aspect** `(s₊ + s₋) / L`,
 //! where on each side of the cut `s±` is the geodesic distance from `γ` at which the area swept
 //! since `γ` first exceeds `growth · L · s` (a tube keeps area `≈ L · s`; a surface that flares
-//! exceeds it), or the whole side when it never does (a ring). A loop is cut when
-//! `L / √A ≤ max_loop_rel` and `aspect ≤ max_neck_aspect`, or when `L / √A ≤ free_loop_rel`
-//! whatever its aspect; the thresholds are options (their defaults and how they were chosen are
-//! in `docs/quality.md`, "Handle cutting").
+//! exceeds it), or the whole side when it never does (a ring). The **side aspect**
+//! `min(s₊, s₋) / L` asks only that one side flare: a limb welded to the body (a hand to a thigh)
+//! is a tube on the limb's side but opens into the body within a tube radius on the other, while
+//! a genuine handle (a mug's, joined arms, a ring) runs for more than its circumference on both.
+//! A loop is cut when `L / √A ≤ max_loop_rel` and (`aspect ≤ max_neck_aspect` or
+//! `side aspect ≤ max_side_aspect`), or when `L / √A ≤ free_loop_rel` whatever its aspects; the
+//! thresholds are options (their defaults and how they were chosen are in `docs/quality.md`,
+//! "Handle cutting" and §13).
 //!
 //! Everything is deterministic (no randomness; ties broken by indices). Requires a manifold mesh
 //! (every edge in at most two faces): [`TopologyError::NonManifoldEdge`] otherwise. A loop through
@@ -135,6 +139,12 @@ pub struct HandleCutOptions {
     /// A loop qualifies only when its neck aspect (module docs) is `≤ max_neck_aspect`, unless
     /// it is shorter than `free_loop_rel`.
     pub max_neck_aspect: f64,
+    /// A loop (within `max_loop_rel`) also qualifies when its **side aspect** `min(s₊, s₋) / L`
+    /// is `≤ max_side_aspect`: the surface flares within that much of `L` on at least one side
+    /// (module docs). 0 (the default) turns the test off: only the two-sided test. Omitted from
+    /// the JSON at 0, so the key of a spec without it is unchanged.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub max_side_aspect: f64,
     /// A loop with `length / sqrt(area) ≤ free_loop_rel` qualifies whatever its neck aspect
     /// (default 0: none). Two tiers: loops this short are cut as welds, longer ones up to
     /// `max_loop_rel` only when they are also short necks (`docs/quality.md` §9 for the values).
@@ -153,11 +163,44 @@ pub struct HandleCutOptions {
     pub remove_band: bool,
 }
 
+impl HandleCutOptions {
+    /// Checks the options: `growth > 1` and finite, every threshold `≥ 0` (not NaN).
+    ///
+    /// # Errors
+    /// [`TopologyError::InvalidOption`] naming the values.
+    pub fn validate(&self) -> Result<(), TopologyError> {
+        let valid = self.growth > 1.0
+            && self.growth.is_finite()
+            && self.max_loop_rel >= 0.0
+            && self.max_neck_aspect >= 0.0
+            && self.max_side_aspect >= 0.0
+            && self.free_loop_rel >= 0.0;
+        if valid {
+            Ok(())
+        } else {
+            Err(TopologyError::InvalidOption(format!(
+                "growth must be > 1 and the thresholds >= 0, got growth {}, max_loop_rel {}, \
+                 max_neck_aspect {}, max_side_aspect {}, free_loop_rel {}",
+                self.growth,
+                self.max_loop_rel,
+                self.max_neck_aspect,
+                self.max_side_aspect,
+                self.free_loop_rel
+            )))
+        }
+    }
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
+}
+
 impl Default for HandleCutOptions {
     fn default() -> Self {
         Self {
             max_loop_rel: 0.5,
             max_neck_aspect: 1.5,
+            max_side_aspect: 0.0,
             free_loop_rel: 0.0,
             growth: 2.0,
             roots: 8,
@@ -180,6 +223,8 @@ pub struct LoopReport {
     /// Neck aspect `(s₊ + s₋) / length` (module docs); `None` when not measured (the loop touches
     /// the boundary or is one-sided).
     pub neck_aspect: Option<f64>,
+    /// Side aspect `min(s₊, s₋) / length`; `None` when not measured.
+    pub side_aspect: Option<f64>,
     /// Shortest distance between the two sides of the cut over the rest of the surface, relative
     /// to `length` (the handle this loop goes around, seen from the loop); `None` when not measured.
     pub handle_rel: Option<f64>,
