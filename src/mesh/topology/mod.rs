@@ -136,8 +136,9 @@ pub struct HomologyLoop {
 pub struct HandleCutOptions {
     /// A loop qualifies only when `length / sqrt(area) ≤ max_loop_rel`.
     pub max_loop_rel: f64,
-    /// A loop qualifies only when its neck aspect (module docs) is `≤ max_neck_aspect`, unless
-    /// it is shorter than `free_loop_rel`.
+    /// A loop (within `max_loop_rel`) qualifies when its neck aspect (module docs) is
+    /// `≤ max_neck_aspect`, or its side aspect passes `max_side_aspect`, or it is shorter than
+    /// `free_loop_rel`.
     pub max_neck_aspect: f64,
     /// A loop (within `max_loop_rel`) also qualifies when its **side aspect** `min(s₊, s₋) / L`
     /// is `≤ max_side_aspect`: the surface flares within that much of `L` on at least one side
