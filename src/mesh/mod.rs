@@ -8,6 +8,7 @@ pub mod prepare;
 pub mod read;
 pub mod samples;
 pub mod topology;
+pub mod weld;
 pub mod write;
 
 pub use read::{detect_format, read_mesh, read_path, Format, ReadLimits};
