@@ -4,7 +4,7 @@
 //! ```text
 //! cargo run --release --example weld_bench -- MANIFEST OUT_DIR --class crane-man \
 //!     --sources null,iso1,iso2,iso3 --bridges 5,6,8 [--disc-edges 3.0] [--seed N] \
-//!     [--separation-edges 4.0] [--max-gap-edges 20.0] [--min-geodesic-rel 0.2]
+//!     [--separation-edges 4.0] [--max-gap-edges 20.0] [--min-geodesic-rel 0.2] [--pull 0.6]
 //! ```
 //!
 //! `MANIFEST` has the columns `id,path,class,transform,strength,source_pose` (paths relative to
@@ -12,7 +12,7 @@
 //! count `B` of `--bridges`, the source mesh is read, prepared with the default
 //! `PrepareOptions` (as eval does) and welded (`mesh::weld::weld`, disc radius `--disc-edges`
 //! mean edge lengths, default 3.0 as the benchmark's strongest level, seed `--seed`, default 0;
-//! the last three flags set the `WeldOptions` of the same names, defaults as there: fewer
+//! the last four flags set the `WeldOptions` of the same names, defaults as there: fewer
 //! bridges than asked are made where the shape has too few contacts, and a smaller separation,
 //! a larger gap or a smaller relative geodesic distance admits more).
 //! The result is written to `OUT_DIR/meshes/<class>-weld<B>-<S>.obj`, read back and prepared
@@ -42,7 +42,7 @@ fn main() {
 
 const USAGE: &str = "usage: weld_bench MANIFEST OUT_DIR --class CLASS --sources S1,S2,.. \
                      --bridges B1,B2,.. [--disc-edges R] [--seed N] [--separation-edges E] \
-                     [--max-gap-edges G] [--min-geodesic-rel F]";
+                     [--max-gap-edges G] [--min-geodesic-rel F] [--pull P]";
 
 struct Args {
     manifest: PathBuf,
@@ -77,6 +77,7 @@ fn parse_args() -> Res<Args> {
             "--separation-edges" => base.separation_edges = val()?.parse()?,
             "--max-gap-edges" => base.max_gap_edges = val()?.parse()?,
             "--min-geodesic-rel" => base.min_geodesic_rel = val()?.parse()?,
+            "--pull" => base.pull = val()?.parse()?,
             s if s.starts_with("--") => return Err(format!("unknown option {s}; {USAGE}").into()),
             _ => pos.push(a),
         }
