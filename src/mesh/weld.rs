@@ -61,10 +61,9 @@
 //! Everything is deterministic for a given seed. The input must be a manifold triangle mesh
 //! (every edge in at most two faces, no repeated vertex in a face).
 
-use super::topology::{surface_stats, SurfaceStats, TopologyError};
+use super::topology::{surface_stats, HeapItem, SurfaceStats, TopologyError};
 use super::{cross, dot, norm, sub, Mesh};
 use serde::{Deserialize, Serialize};
-use std::cmp::Ordering;
 use std::collections::{BinaryHeap, HashMap, HashSet};
 
 /// Most bridges one call may make.
@@ -558,29 +557,11 @@ impl Graph {
     }
 }
 
-#[derive(PartialEq)]
-struct Item(f64, u32);
-impl Eq for Item {}
-impl PartialOrd for Item {
-    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
-        Some(self.cmp(other))
-    }
-}
-impl Ord for Item {
-    fn cmp(&self, other: &Self) -> Ordering {
-        // Min-heap on distance, ties by vertex index.
-        other
-            .0
-            .total_cmp(&self.0)
-            .then_with(|| other.1.cmp(&self.1))
-    }
-}
-
 /// Reusable Dijkstra buffers: `dist` is `∞` except at `touched`.
 struct Scratch {
     dist: Vec<f64>,
     touched: Vec<u32>,
-    heap: BinaryHeap<Item>,
+    heap: BinaryHeap<HeapItem>,
 }
 
 impl Scratch {
@@ -604,10 +585,10 @@ impl Scratch {
             if self.dist[s as usize] > 0.0 {
                 self.dist[s as usize] = 0.0;
                 self.touched.push(s);
-                self.heap.push(Item(0.0, s));
+                self.heap.push(HeapItem(0.0, s));
             }
         }
-        while let Some(Item(d, v)) = self.heap.pop() {
+        while let Some(HeapItem(d, v)) = self.heap.pop() {
             if d > limit {
                 break;
             }
@@ -621,7 +602,7 @@ impl Scratch {
                         self.touched.push(w);
                     }
                     self.dist[w as usize] = nd;
-                    self.heap.push(Item(nd, w));
+                    self.heap.push(HeapItem(nd, w));
                 }
             }
         }

@@ -400,8 +400,10 @@ impl Topo {
     }
 }
 
+/// A Dijkstra heap entry `(distance, vertex)`, ordered as a min-heap on distance (ties by vertex
+/// index) in a `BinaryHeap`; shared with [`crate::mesh::weld`].
 #[derive(PartialEq)]
-struct HeapItem(f64, u32);
+pub(crate) struct HeapItem(pub(crate) f64, pub(crate) u32);
 impl Eq for HeapItem {}
 impl PartialOrd for HeapItem {
     fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
