@@ -570,3 +570,28 @@ fn side_aspects_of_genuine_handles_and_welds() {
         );
     }
 }
+
+/// `max_side_aspect` is omitted from the JSON at 0 (its "off" value), so a spec that does not use
+/// the side test keeps its key; the default's (0.9) is written and read back; a negative or NaN
+/// threshold is refused.
+#[test]
+fn side_threshold_serialises_only_when_set() {
+    let off = serde_json::to_string(&HandleCutOptions::default()).unwrap();
+    assert!(!off.contains("max_side_aspect"), "{off}");
+    let default = shapeseek::presets::DEFAULT_HANDLE_CUT;
+    let json = serde_json::to_string(&default).unwrap();
+    assert!(json.contains("\"max_side_aspect\":0.9"), "{json}");
+    let back: HandleCutOptions = serde_json::from_str(&json).unwrap();
+    assert_eq!(back, default);
+    let old: HandleCutOptions =
+        serde_json::from_str(r#"{"max_loop_rel": 0.5, "max_neck_aspect": 3}"#).unwrap();
+    assert_eq!(old.max_side_aspect, 0.0);
+    for bad in [-0.1, f64::NAN] {
+        let o = HandleCutOptions {
+            max_side_aspect: bad,
+            ..default
+        };
+        assert!(o.validate().is_err(), "{bad}");
+        assert!(cut_handles(&torus(2.0, 0.5, 20, 8), &o).is_err(), "{bad}");
+    }
+}
