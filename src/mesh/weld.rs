@@ -61,7 +61,7 @@
 //! Everything is deterministic for a given seed. The input must be a manifold triangle mesh
 //! (every edge in at most two faces, no repeated vertex in a face).
 
-use super::topology::{surface_stats, HeapItem, SurfaceStats, TopologyError};
+use super::topology::{compact, surface_stats, HeapItem, SurfaceStats, TopologyError};
 use super::{cross, dot, norm, sub, Mesh};
 use serde::{Deserialize, Serialize};
 use std::collections::{BinaryHeap, HashMap, HashSet};
@@ -363,7 +363,8 @@ pub fn weld(mesh: &Mesh, opts: &WeldOptions) -> Result<(Mesh, WeldReport), WeldE
         .filter(|(_, &r)| !r)
         .map(|(f, _)| *f);
     let all: Vec<[u32; 3]> = kept.chain(faces).collect();
-    let out = compact(pos, all, mesh.repairs.clone());
+    let (mut out, _) = compact(&pos, all);
+    out.repairs = mesh.repairs.clone();
 
     // Final check.
     let after = surface_stats(&out).map_err(|e| WeldError::Check(e.to_string()))?;
@@ -954,27 +955,4 @@ fn tube(
         zip((&w[0].0, &w[0].1), (&w[1].0, &w[1].1), faces);
     }
     rings
-}
-
-/// Drops unreferenced vertices (kept ones in their order) and re-indexes the faces.
-fn compact(pos: Vec<[f64; 3]>, faces: Vec<[u32; 3]>, repairs: Vec<String>) -> Mesh {
-    let mut map = vec![u32::MAX; pos.len()];
-    for f in &faces {
-        for &v in f {
-            map[v as usize] = 0;
-        }
-    }
-    let mut vertices = Vec::new();
-    for (v, p) in pos.into_iter().enumerate() {
-        if map[v] == 0 {
-            map[v] = vertices.len() as u32;
-            vertices.push(p);
-        }
-    }
-    let faces = faces.iter().map(|f| f.map(|v| map[v as usize])).collect();
-    Mesh {
-        vertices,
-        faces,
-        repairs,
-    }
 }

@@ -185,7 +185,10 @@ fn remove_band(mesh: &Mesh, verts: &[u32]) -> (Mesh, Vec<u32>) {
     compact(&mesh.vertices, faces)
 }
 
-fn compact(vertices: &[[f64; 3]], faces: Vec<[u32; 3]>) -> (Mesh, Vec<u32>) {
+/// Drops the vertices no face references (the kept ones in their order) and re-indexes the
+/// faces; also returns, per input vertex, its index in the result (`NONE` when dropped). Shared
+/// with [`crate::mesh::weld`].
+pub(crate) fn compact(vertices: &[[f64; 3]], faces: Vec<[u32; 3]>) -> (Mesh, Vec<u32>) {
     let mut map = vec![NONE; vertices.len()];
     let mut verts = Vec::new();
     for f in &faces {

@@ -521,6 +521,7 @@ pub fn surface_stats(mesh: &Mesh) -> Result<SurfaceStats, TopologyError> {
 mod cut;
 mod homology;
 
+pub(crate) use cut::compact;
 pub use cut::{cut_handles, cut_handles_with_map};
 pub use homology::short_homology_basis;
 
