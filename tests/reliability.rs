@@ -209,6 +209,48 @@ fn an_oversized_content_length_is_413_before_100_continue() {
 }
 
 #[test]
+fn a_chunked_body_is_read_whole_up_to_the_limit_and_refused_past_it() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), |c| c.max_body_bytes = 4096);
+    let chunked = |parts: &[&[u8]]| {
+        let mut req = b"POST /v1/shapes HTTP/1.1\r\nHost: x\r\nContent-Type: model/off\r\n\
+Transfer-Encoding: chunked\r\n\r\n"
+            .to_vec();
+        for p in parts {
+            req.extend_from_slice(format!("{:x}\r\n", p.len()).as_bytes());
+            req.extend_from_slice(p);
+            req.extend_from_slice(b"\r\n");
+        }
+        req.extend_from_slice(b"0\r\n\r\n");
+        req
+    };
+    // A tetrahedron in three chunks: read whole, then refused as too small a mesh (not 413).
+    let tet: &[&[u8]] = &[
+        b"OFF\n4 4 0\n0 0 0\n1 0 0\n",
+        b"0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n",
+        b"3 0 3 2\n3 1 2 3\n",
+    ];
+    let mut c = connect(s.addr);
+    c.write_all(&chunked(tet)).unwrap();
+    let r = read_response(&mut c);
+    assert_ne!(r.0, 413, "{}", String::from_utf8_lossy(&r.2));
+    assert!(
+        r.0 == 201 || r.0 == 422,
+        "{} {}",
+        r.0,
+        String::from_utf8_lossy(&r.2)
+    );
+    // 5 000 bytes in chunks of 1 000 without a Content-Length: 413 once past 4 096.
+    let big = vec![b'#'; 1000];
+    let parts: Vec<&[u8]> = (0..5).map(|_| big.as_slice()).collect();
+    let mut c = connect(s.addr);
+    c.write_all(&chunked(&parts)).unwrap();
+    assert_problem(&read_response(&mut c), 413, "limit.bytes");
+    s.stop();
+}
+
+#[test]
 fn connections_over_the_cap_get_503_with_retry_after() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
