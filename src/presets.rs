@@ -391,6 +391,7 @@ pub const DEFAULT_HANDLE_CUT: HandleCutOptions = HandleCutOptions {
     max_loop_rel: 0.5,
     max_neck_aspect: 3.0,
     max_side_aspect: 0.9,
+    stub_aspect: 0.0,
     free_loop_rel: 0.0,
     growth: 2.0,
     roots: 8,

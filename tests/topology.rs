@@ -595,3 +595,57 @@ fn side_threshold_serialises_only_when_set() {
         assert!(cut_handles(&torus(2.0, 0.5, 20, 8), &o).is_err(), "{bad}");
     }
 }
+
+/// `stub_aspect`: cutting the welded C's neck with it removes the two halves of the weld tube
+/// (every kept vertex lies outside the gap the tube spans) and no more than a thin ring of the
+/// caps beyond; without it the tube halves stay. The limb welded to the body loses its short
+/// stub on the body's side, never the limb (which does not open within `L`). Off (0) by default
+/// and omitted from the JSON then; negative or NaN refused.
+#[test]
+fn stubs_of_a_cut_weld_are_removed_up_to_where_the_surface_opens() {
+    let m = welded_c(0.25, 0.06, 0.12, 360, 24);
+    let angle = |p: &[f64; 3]| p[1].atan2(p[0]).abs();
+    let keep = shapeseek::presets::DEFAULT_HANDLE_CUT;
+    let stubs = HandleCutOptions {
+        stub_aspect: 1.0,
+        ..keep.clone()
+    };
+    let (kept, rk) = cut_handles(&m, &keep).unwrap();
+    let (out, rs) = cut_handles(&m, &stubs).unwrap();
+    assert_eq!((rk.cuts, rs.cuts), (1, 1));
+    assert_eq!((genus(&kept), genus(&out)), (0, 0));
+    // Kept: the tube's rings inside the gap (half-width 0.06 rad) stay on both sides.
+    assert!(kept.vertices.iter().any(|p| angle(p) < 0.04), "tube kept");
+    // Removed: the tube up to its last ring (at 3°, 0.052 rad; the gap's edge, 0.06 rad, falls
+    // between it and the caps' first ring), and at most a thin ring of the caps beyond.
+    let nearest = out.vertices.iter().map(angle).fold(f64::INFINITY, f64::min);
+    assert!(
+        nearest > 0.05 && nearest < 0.16,
+        "nearest kept angle {nearest}"
+    );
+    assert!(
+        rs.area_kept < rk.area_kept && rs.area_kept > 0.97,
+        "{rs:?} {rk:?}"
+    );
+    // The limb: only the stub on the body's side goes; the limb stays.
+    let limb = limb_welded_to_body(0.1, 0.06, 0.6, 1.8);
+    let (_, rl) = cut_handles(&limb, &stubs).unwrap();
+    assert_eq!(rl.cuts, 1);
+    assert!(rl.area_kept > 0.97, "{rl:?}");
+    // Serialisation and validation.
+    let json = serde_json::to_string(&keep).unwrap();
+    assert!(!json.contains("stub_aspect"), "{json}");
+    let json = serde_json::to_string(&stubs).unwrap();
+    assert!(json.contains("\"stub_aspect\":1.0"), "{json}");
+    assert_eq!(
+        serde_json::from_str::<HandleCutOptions>(&json).unwrap(),
+        stubs
+    );
+    for bad in [-0.1, f64::NAN] {
+        let o = HandleCutOptions {
+            stub_aspect: bad,
+            ..keep.clone()
+        };
+        assert!(o.validate().is_err(), "{bad}");
+    }
+}

@@ -125,6 +125,10 @@ struct Neck {
     sides: [f64; 2],
     /// `across / L`.
     across: f64,
+    /// Per side, the length of its stub relative to `L` (infinite where the side never opens).
+    stub_sides: [f64; 2],
+    /// Per side, the vertices of its stub (nearer to the loop than where the side opens).
+    stubs: [Vec<u32>; 2],
 }
 
 impl Neck {
@@ -139,20 +143,28 @@ impl Neck {
     }
 }
 
+/// Level curves around a cut loop this many times its length end a stub (`stub` in [`neck`]).
+const STUB_FLARE: f64 = 1.5;
+
 fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> Option<Neck> {
     let t = Topo::build(split).ok()?;
     let (dp, _) = dijkstra(&t, plus);
     let (dm, _) = dijkstra(&t, minus);
     let area = vertex_areas(split);
     let h = length / plus.len() as f64;
-    let extent = |mine: &[f64], theirs: &[f64]| -> f64 {
+    // One side's vertices, nearest to the loop first.
+    let side = |mine: &[f64], theirs: &[f64]| -> Vec<usize> {
         let mut vs: Vec<usize> = (0..t.n)
             .filter(|&v| mine[v].is_finite() && mine[v] <= theirs[v])
             .collect();
         vs.sort_by(|&a, &b| mine[a].total_cmp(&mine[b]).then(a.cmp(&b)));
+        vs
+    };
+    // The extent of one side (module docs).
+    let extent = |mine: &[f64], vs: &[usize]| -> f64 {
         let mut acc = 0.0;
         let mut last = 0.0;
-        for &v in &vs {
+        for &v in vs {
             acc += area[v];
             last = mine[v];
             if acc > growth * length * mine[v].max(h) {
@@ -161,7 +173,35 @@ fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> 
         }
         last
     };
-    let sides = [extent(&dp, &dm) / length, extent(&dm, &dp) / length];
+    // The stub of one side: the vertices before the first distance `s` at which the level
+    // curves around the loop have grown to `STUB_FLARE · L` (their length estimated as the area
+    // of a band of width `w` centred on `s`, divided by `w`); with the distance `s`. A tube keeps
+    // level curves of about `L`; where it opens into a surface they lengthen at once. Empty
+    // (and infinite) where they never do.
+    let stub = |mine: &[f64], vs: &[usize]| -> (f64, Vec<u32>) {
+        let w = 3.0 * h;
+        let (mut lo, mut band) = (0, 0.0);
+        for (k, &v) in vs.iter().enumerate() {
+            band += area[v];
+            while mine[v] - mine[vs[lo]] > w {
+                band -= area[vs[lo]];
+                lo += 1;
+            }
+            if mine[v] >= w && band / w > STUB_FLARE * length {
+                let s = mine[v] - 0.5 * w;
+                let verts = vs[..k]
+                    .iter()
+                    .take_while(|&&u| mine[u] < s)
+                    .map(|&u| u as u32)
+                    .collect();
+                return (s, verts);
+            }
+        }
+        (f64::INFINITY, Vec::new())
+    };
+    let (vp, vm) = (side(&dp, &dm), side(&dm, &dp));
+    let sides = [extent(&dp, &vp) / length, extent(&dm, &vm) / length];
+    let (stub_p, stub_m) = (stub(&dp, &vp), stub(&dm, &vm));
     let across = minus
         .iter()
         .map(|&v| dp[v as usize])
@@ -169,6 +209,8 @@ fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> 
     Some(Neck {
         sides,
         across: across / length,
+        stub_sides: [stub_p.0 / length, stub_m.0 / length],
+        stubs: [stub_p.1, stub_m.1],
     })
 }
 
@@ -282,6 +324,11 @@ pub fn cut_handles_with_map(
                         rep.cut = true;
                         let mut band = lp.vertices.clone();
                         band.extend(&minus);
+                        for (s, stub) in nk.stub_sides.iter().zip(&nk.stubs) {
+                            if opts.stub_aspect > 0.0 && *s <= opts.stub_aspect {
+                                band.extend(stub);
+                            }
+                        }
                         next = Some((sp, band));
                     }
                 }

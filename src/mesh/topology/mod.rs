@@ -58,6 +58,13 @@
 //! thresholds are options (their defaults and how they were chosen are in `docs/quality.md`,
 //! "Handle cutting" and §13).
 //!
+//! **Stubs.** Cutting a weld at its tunnel loop leaves the two halves of its tube as stubs on
+//! the parts it joined. With `stub_aspect > 0`, a side whose extent is short (`s± / L ≤
+//! stub_aspect`, a tube stub ending where the surface flares) is removed with the cut, up to
+//! that flare: the cut then leaves a hole where the weld began instead of a protruding stub. A
+//! side that runs on (a limb) is never removed, and the area a stub can take is bounded by its
+//! own definition (`growth · L · s±`).
+//!
 //! Everything is deterministic (no randomness; ties broken by indices). Requires a manifold mesh
 //! (every edge in at most two faces): [`TopologyError::NonManifoldEdge`] otherwise. A loop through
 //! a boundary vertex, or one whose two sides cannot be told apart (a one-sided loop of a
@@ -146,6 +153,11 @@ pub struct HandleCutOptions {
     /// the JSON at 0, so the key of a spec without it is unchanged.
     #[serde(skip_serializing_if = "is_zero")]
     pub max_side_aspect: f64,
+    /// When a loop is cut (and `remove_band` is set), each side whose extent is
+    /// `s± / L ≤ stub_aspect` is removed too, up to where it flares (module docs, "Stubs").
+    /// 0 (the default) keeps both sides whole. Omitted from the JSON at 0.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub stub_aspect: f64,
     /// A loop with `length / sqrt(area) ≤ free_loop_rel` qualifies whatever its neck aspect
     /// (default 0: none). Two tiers: loops this short are cut as welds, longer ones up to
     /// `max_loop_rel` only when they are also short necks (`docs/quality.md` §9 for the values).
@@ -175,17 +187,19 @@ impl HandleCutOptions {
             && self.max_loop_rel >= 0.0
             && self.max_neck_aspect >= 0.0
             && self.max_side_aspect >= 0.0
+            && self.stub_aspect >= 0.0
             && self.free_loop_rel >= 0.0;
         if valid {
             Ok(())
         } else {
             Err(TopologyError::InvalidOption(format!(
                 "growth must be > 1 and the thresholds >= 0, got growth {}, max_loop_rel {}, \
-                 max_neck_aspect {}, max_side_aspect {}, free_loop_rel {}",
+                 max_neck_aspect {}, max_side_aspect {}, stub_aspect {}, free_loop_rel {}",
                 self.growth,
                 self.max_loop_rel,
                 self.max_neck_aspect,
                 self.max_side_aspect,
+                self.stub_aspect,
                 self.free_loop_rel
             )))
         }
@@ -202,6 +216,7 @@ impl Default for HandleCutOptions {
             max_loop_rel: 0.5,
             max_neck_aspect: 1.5,
             max_side_aspect: 0.0,
+            stub_aspect: 0.0,
             free_loop_rel: 0.0,
             growth: 2.0,
             roots: 8,
