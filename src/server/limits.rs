@@ -198,12 +198,11 @@ enum BodyReadError {
 /// (`scripts/memory-test.sh`, glTF peaks of 476–493 MiB against the 448 MiB bound). Each frame
 /// is copied in and dropped as it arrives.
 async fn read_whole(
-    body: axum::body::Body,
+    mut body: axum::body::Body,
     limit: usize,
     declared: Option<usize>,
 ) -> Result<axum::body::Bytes, BodyReadError> {
     use http_body_util::BodyExt;
-    let mut body = body;
     let mut buf: Vec<u8> = Vec::with_capacity(declared.unwrap_or(0).min(limit));
     while let Some(frame) = body.frame().await {
         let frame = frame.map_err(BodyReadError::Read)?;

@@ -146,7 +146,16 @@ impl Neck {
 /// Level curves around a cut loop this many times its length end a stub (`stub` in [`neck`]).
 const STUB_FLARE: f64 = 1.5;
 
-fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> Option<Neck> {
+/// Measures the neck of a split loop; its stubs only when `stubs` is set (a cut that removes
+/// them), else none (`stub_sides` infinite).
+fn neck(
+    split: &Mesh,
+    plus: &[u32],
+    minus: &[u32],
+    length: f64,
+    growth: f64,
+    stubs: bool,
+) -> Option<Neck> {
     let t = Topo::build(split).ok()?;
     let (dp, _) = dijkstra(&t, plus);
     let (dm, _) = dijkstra(&t, minus);
@@ -201,7 +210,12 @@ fn neck(split: &Mesh, plus: &[u32], minus: &[u32], length: f64, growth: f64) -> 
     };
     let (vp, vm) = (side(&dp, &dm), side(&dm, &dp));
     let sides = [extent(&dp, &vp) / length, extent(&dm, &vm) / length];
-    let (stub_p, stub_m) = (stub(&dp, &vp), stub(&dm, &vm));
+    let (stub_p, stub_m) = if stubs {
+        (stub(&dp, &vp), stub(&dm, &vm))
+    } else {
+        let none = || (f64::INFINITY, Vec::new());
+        (none(), none())
+    };
     let across = minus
         .iter()
         .map(|&v| dp[v as usize])
@@ -313,7 +327,8 @@ pub fn cut_handles_with_map(
                 let sp = split(&cur, &lp.vertices, &side);
                 let minus: Vec<u32> =
                     (cur.vertices.len() as u32..sp.vertices.len() as u32).collect();
-                if let Some(nk) = neck(&sp, &lp.vertices, &minus, lp.length, opts.growth) {
+                let stubs = opts.stub_aspect > 0.0;
+                if let Some(nk) = neck(&sp, &lp.vertices, &minus, lp.length, opts.growth, stubs) {
                     rep.neck_aspect = Some(nk.aspect());
                     rep.side_aspect = Some(nk.side_aspect());
                     rep.handle_rel = Some(nk.across);
@@ -325,7 +340,7 @@ pub fn cut_handles_with_map(
                         let mut band = lp.vertices.clone();
                         band.extend(&minus);
                         for (s, stub) in nk.stub_sides.iter().zip(&nk.stubs) {
-                            if opts.stub_aspect > 0.0 && *s <= opts.stub_aspect {
+                            if *s <= opts.stub_aspect {
                                 band.extend(stub);
                             }
                         }

@@ -59,11 +59,12 @@
 //! "Handle cutting" and §13).
 //!
 //! **Stubs.** Cutting a weld at its tunnel loop leaves the two halves of its tube as stubs on
-//! the parts it joined. With `stub_aspect > 0`, a side whose extent is short (`s± / L ≤
-//! stub_aspect`, a tube stub ending where the surface flares) is removed with the cut, up to
-//! that flare: the cut then leaves a hole where the weld began instead of a protruding stub. A
-//! side that runs on (a limb) is never removed, and the area a stub can take is bounded by its
-//! own definition (`growth · L · s±`).
+//! the parts it joined. On each side, the stub ends at the first distance from `γ` where the
+//! level curves around it have grown to 1.5 `L` (a tube keeps them at about `L`; where it opens
+//! into a surface they lengthen at once). With `stub_aspect > 0`, a side whose stub is at most
+//! `stub_aspect · L` long is removed with the cut, up to that point: the cut then leaves a hole
+//! where the weld began instead of a protruding stub. A side whose level curves never lengthen
+//! (a limb, a ring) is never removed.
 //!
 //! Everything is deterministic (no randomness; ties broken by indices). Requires a manifold mesh
 //! (every edge in at most two faces): [`TopologyError::NonManifoldEdge`] otherwise. A loop through
@@ -153,8 +154,9 @@ pub struct HandleCutOptions {
     /// the JSON at 0, so the key of a spec without it is unchanged.
     #[serde(skip_serializing_if = "is_zero")]
     pub max_side_aspect: f64,
-    /// When a loop is cut (and `remove_band` is set), each side whose extent is
-    /// `s± / L ≤ stub_aspect` is removed too, up to where it flares (module docs, "Stubs").
+    /// When a loop is cut (and `remove_band` is set), each side whose stub (the tube up to
+    /// where the surface opens, module docs "Stubs") is at most `stub_aspect · L` long is
+    /// removed too.
     /// 0 (the default) keeps both sides whole. Omitted from the JSON at 0.
     #[serde(skip_serializing_if = "is_zero")]
     pub stub_aspect: f64,
