@@ -640,9 +640,10 @@ fn abandoned_searches_stop_their_work() {
         c.request_timeout_secs = 1.0;
         c.retry_after_secs = 2;
     });
-    let ids = ingest_corpus(s.addr, 24);
+    let ids = ingest_corpus(s.addr, 48);
     let addr = s.addr;
-    // Alone, this search takes several seconds of CPU (24 candidates, 20 outer iterations).
+    // Alone, this search must outlast the 1 s timeout: 48 candidates, 20 outer iterations (with
+    // 24 candidates it once finished in 0.95 s, inside the timeout).
     let t0 = Instant::now();
     let r = search(addr, &gw_search(&ids[0], 20));
     assert_problem(&r, 503, "request.timeout");
