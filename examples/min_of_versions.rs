@@ -1,0 +1,276 @@
+//! Two versions of every shape, compared by the smaller of the two dissimilarities: a
+//! measurement of "min of two cuts" (docs/quality.md §16) without any change to the pipeline.
+//!
+//! ```text
+//! cargo run --release --example cut_handles -- M /tmp/v/s9 '{"max_loop_rel":0.5,"max_neck_aspect":3,"max_side_aspect":0.9}'
+//! cargo run --release --example cut_handles -- M /tmp/v/d '{"max_loop_rel":0.5,"max_neck_aspect":1e9}'
+//! python3 scripts/analysis/combine_manifests.py s9=/tmp/v/s9/manifest.csv d=/tmp/v/d/manifest.csv > /tmp/v/both.csv
+//! shapeseek eval --manifest /tmp/v/both.csv --config FIRST_STAGE.json --window-percentile 0.9 --matrices /tmp/v/m.json
+//! cargo run --release --example min_of_versions -- /tmp/v/m.json s9 d
+//! ```
+//!
+//! The matrices file must hold one configuration without re-ranking stages (its values are then
+//! the first-stage dissimilarities) over a manifest whose ids end in `~A` and `~B` for the two
+//! versions of the same shapes in the same order (`combine_manifests.py` writes it; one eval run
+//! ranks both under one calibration). Three dissimilarity matrices are formed over the shapes:
+//! `A`, `B` and `min(A, B)` entry by entry — a pair is as similar as its more similar version
+//! pair. Each is re-ranked by the default's reciprocal stage ([`ReciprocalStage::default`], the
+//! machinery of `shapeseek eval`) and scored as eval scores: mAP per transformation class and
+//! per strength of topology and isometry+topology over the full set, then eval's
+//! leave-one-class-out protocol with candidates `A` and `min` (per fold, the better held-in All,
+//! with queries and candidates restricted to the other classes and the stage re-run; `B` is
+//! reported held fixed only, as the version whose cutting need not keep genuine handles).
+
+use shapeseek::eval::metrics::{self, Evaluation};
+use shapeseek::eval::rerank::{rerank_matrix, PairCache};
+use shapeseek::rerank::ReciprocalStage;
+use shapeseek::search::Stage;
+
+type Res<T> = Result<T, Box<dyn std::error::Error>>;
+
+const TRANSFORMS: [&str; 8] = [
+    "null",
+    "isometry",
+    "topology",
+    "isometry+topology",
+    "partiality",
+    "triangulation",
+    "noise",
+    "scale",
+];
+
+fn main() {
+    if let Err(e) = run() {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+}
+
+struct Shapes {
+    classes: Vec<usize>,
+    class_names: Vec<String>,
+    transforms: Vec<String>,
+    strengths: Vec<i64>,
+}
+
+fn run() -> Res<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    if args.len() != 3 {
+        return Err("usage: min_of_versions MATRICES_JSON A B".into());
+    }
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&args[0])?)?;
+    let shapes = v["shapes"].as_array().ok_or("no `shapes` array")?;
+    let matrices = v["matrices"].as_object().ok_or("no `matrices` object")?;
+    if matrices.len() != 1 {
+        return Err("the matrices file must hold exactly one configuration".into());
+    }
+    let m = matrices
+        .values()
+        .next()
+        .and_then(|m| m.as_array())
+        .ok_or("bad matrix")?;
+    let id = |i: usize| shapes[i]["id"].as_str().unwrap_or_default().to_string();
+    let version = |name: &str| -> Vec<usize> {
+        let suffix = format!("~{name}");
+        (0..shapes.len())
+            .filter(|&i| id(i).ends_with(&suffix))
+            .collect()
+    };
+    let (a, b) = (version(&args[1]), version(&args[2]));
+    let n = a.len();
+    if n == 0 || b.len() != n {
+        return Err(format!("{} shapes `~{}`, {} `~{}`", n, args[1], b.len(), args[2]).into());
+    }
+    for (&i, &j) in a.iter().zip(&b) {
+        let (x, y) = (id(i), id(j));
+        if x.rsplit_once('~').map(|p| p.0) != y.rsplit_once('~').map(|p| p.0) {
+            return Err(format!("versions out of order: {x} / {y}").into());
+        }
+    }
+    let at = |i: usize, j: usize| -> Res<f64> {
+        m[i][j]
+            .as_f64()
+            .ok_or_else(|| format!("no dissimilarity for {} / {}", id(i), id(j)).into())
+    };
+    let mut da = vec![0.0; n * n];
+    let mut db = vec![0.0; n * n];
+    for x in 0..n {
+        for y in (0..n).filter(|&y| y != x) {
+            da[x * n + y] = at(a[x], a[y])?;
+            db[x * n + y] = at(b[x], b[y])?;
+        }
+    }
+    let dmin: Vec<f64> = da.iter().zip(&db).map(|(p, q)| p.min(*q)).collect();
+
+    let mut class_names: Vec<String> = Vec::new();
+    let mut classes = Vec::new();
+    for &i in &a {
+        let c = shapes[i]["class"].as_str().unwrap_or_default().to_string();
+        let k = class_names.iter().position(|u| *u == c).unwrap_or_else(|| {
+            class_names.push(c);
+            class_names.len() - 1
+        });
+        classes.push(k);
+    }
+    let s = Shapes {
+        classes,
+        class_names,
+        transforms: a
+            .iter()
+            .map(|&i| {
+                shapes[i]["transform"]
+                    .as_str()
+                    .unwrap_or_default()
+                    .to_string()
+            })
+            .collect(),
+        strengths: a
+            .iter()
+            .map(|&i| shapes[i]["strength"].as_i64().unwrap_or(0))
+            .collect(),
+    };
+    let names = [
+        args[1].clone(),
+        args[2].clone(),
+        format!("min({},{})", args[1], args[2]),
+    ];
+    let variants: [&[f64]; 3] = [&da, &db, &dmin];
+    let all = vec![true; n];
+    let full: Vec<Evaluation> = variants.iter().map(|d| ranked(d, n, &s, &all)).collect();
+
+    println!("## Full set, after the reciprocal stage (mAP %)\n");
+    println!(
+        "| version | {} | All | topology 1-4 | isometry+topology 1-4 |",
+        TRANSFORMS.join(" | ")
+    );
+    println!("|---|{}---|---|---|", "---|".repeat(TRANSFORMS.len()));
+    for (name, e) in names.iter().zip(&full) {
+        let per = |t: &str| {
+            (1..=4)
+                .map(|k| pct(e.per_strength.get(&format!("{t}@{k}")).and_then(|g| g.map)))
+                .collect::<Vec<_>>()
+                .join(" / ")
+        };
+        println!(
+            "| {name} | {} | {} | {} | {} |",
+            TRANSFORMS
+                .map(|t| pct(e.group(t).and_then(|g| g.map)))
+                .join(" | "),
+            pct(e.group(metrics::ALL).and_then(|g| g.map)),
+            per("topology"),
+            per("isometry+topology")
+        );
+    }
+
+    println!(
+        "\n## Leave-one-class-out, candidates {} and {} (mAP %)\n",
+        names[0], names[2]
+    );
+    println!(
+        "| held out | held-in All {} / {} / {} | chosen | {} | All | held fixed: All {} / {} / {} |",
+        names[0],
+        names[1],
+        names[2],
+        TRANSFORMS.join(" | "),
+        names[0],
+        names[1],
+        names[2]
+    );
+    println!("|---|---|---|{}---|---|", "---|".repeat(TRANSFORMS.len()));
+    let folds = s.class_names.len() as f64;
+    let mut selected = [0.0; TRANSFORMS.len() + 1];
+    let mut fixed = [[0.0; TRANSFORMS.len() + 1]; 3];
+    let mut chosen_min = 0;
+    for (c, cname) in s.class_names.iter().enumerate() {
+        let held_in: Vec<bool> = s.classes.iter().map(|&k| k != c).collect();
+        let hin: Vec<f64> = variants
+            .iter()
+            .map(|d| {
+                ranked(d, n, &s, &held_in)
+                    .group(metrics::ALL)
+                    .and_then(|g| g.map)
+            })
+            .map(|x| x.unwrap_or(0.0))
+            .collect();
+        let ch = if hin[2] > hin[0] { 2 } else { 0 };
+        chosen_min += usize::from(ch == 2);
+        let row = held_out(&full[ch], &s, c);
+        for (acc, x) in selected.iter_mut().zip(&row) {
+            *acc += x / folds;
+        }
+        for (f, e) in fixed.iter_mut().zip(&full) {
+            for (acc, x) in f.iter_mut().zip(held_out(e, &s, c)) {
+                *acc += x / folds;
+            }
+        }
+        println!(
+            "| {cname} | {:.2} / {:.2} / {:.2} | {} | {} | {:.2} / {:.2} / {:.2} |",
+            100.0 * hin[0],
+            100.0 * hin[1],
+            100.0 * hin[2],
+            names[ch],
+            row.iter()
+                .map(|x| format!("{x:.2}"))
+                .collect::<Vec<_>>()
+                .join(" | "),
+            held_out(&full[0], &s, c)[TRANSFORMS.len()],
+            held_out(&full[1], &s, c)[TRANSFORMS.len()],
+            held_out(&full[2], &s, c)[TRANSFORMS.len()],
+        );
+    }
+    let line = |v: &[f64]| {
+        v.iter()
+            .map(|x| format!("{x:.2}"))
+            .collect::<Vec<_>>()
+            .join(" | ")
+    };
+    println!(
+        "| **selected, mean** | | {chosen_min} of {} folds {} | {} | |",
+        s.class_names.len(),
+        names[2],
+        line(&selected)
+    );
+    for (name, f) in names.iter().zip(&fixed) {
+        println!("| {name} held fixed, mean | | | {} | |", line(f));
+    }
+    Ok(())
+}
+
+/// The evaluation of `d` after the default's reciprocal stage, over the `included` shapes.
+fn ranked(d: &[f64], n: usize, s: &Shapes, included: &[bool]) -> Evaluation {
+    let stage = Stage::Reciprocal(ReciprocalStage::default());
+    let payloads = vec![None; n];
+    let (r, _) = rerank_matrix(
+        d,
+        d,
+        n,
+        included,
+        &payloads,
+        &stage,
+        &|_, _, _| f64::NAN,
+        &mut PairCache::new(),
+    );
+    metrics::evaluate(&r, n, &s.classes, &s.transforms, &s.strengths, included)
+}
+
+/// mAP % of class `c`'s queries per transformation, then over all of them.
+fn held_out(e: &Evaluation, s: &Shapes, c: usize) -> Vec<f64> {
+    let mean = |t: Option<&str>| {
+        let aps: Vec<f64> = e
+            .queries
+            .iter()
+            .filter(|q| s.classes[q.index] == c && t.is_none_or(|t| s.transforms[q.index] == t))
+            .filter_map(|q| q.ap)
+            .collect();
+        100.0 * aps.iter().sum::<f64>() / aps.len().max(1) as f64
+    };
+    TRANSFORMS
+        .iter()
+        .map(|&t| mean(Some(t)))
+        .chain([mean(None)])
+        .collect()
+}
+
+fn pct(x: Option<f64>) -> String {
+    x.map_or_else(|| "–".into(), |x| format!("{:.2}", 100.0 * x))
+}
