@@ -27,3 +27,21 @@ pub mod storage;
 pub mod worker;
 
 pub use error::{Error, Result};
+
+/// Revision of what the numerical core computes for an unchanged specification: preparation,
+/// handle cutting, the eigenpairs and the signatures. Bump it with every change that moves them
+/// on purpose (`tests/revision.rs` fails until it is bumped and its recorded figures updated):
+/// a stored index then finds every signature stale at its next start and recomputes it from the
+/// stored original (the spec key carries [`revision_tag`]), and eval's cache no longer serves
+/// analyses or signatures of the older code. Specifications, options and the package version
+/// are keyed on their own; this covers the code behind them.
+pub const ALGORITHM_REVISION: u32 = 0;
+
+/// The part of spec and cache keys that names [`ALGORITHM_REVISION`]: empty for revision 0 (the
+/// keys of indexes and caches made before the revision existed are unchanged), else `+r<N>`.
+pub fn revision_tag() -> String {
+    match ALGORITHM_REVISION {
+        0 => String::new(),
+        n => format!("+r{n}"),
+    }
+}

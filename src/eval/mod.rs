@@ -46,7 +46,7 @@ mod shapes;
 
 pub use configs::{alias_of, covers, load_configs, union_specs};
 use output::{markdown_report, write_curves, write_matrices};
-pub(crate) use shapes::ANALYSIS_VERSION;
+pub(crate) use shapes::analysis_version;
 use shapes::{dur, process_shape, Progress, ShapeResult, StageClock};
 
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
@@ -455,7 +455,11 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
                 let t = Instant::now();
                 let akey = |bytes: &[u8]| {
                     let content = hash_parts(&[bytes]);
-                    hash_parts(&[content.as_bytes(), &opts_json, ANALYSIS_VERSION.as_bytes()])
+                    hash_parts(&[
+                        content.as_bytes(),
+                        &opts_json,
+                        analysis_version().as_bytes(),
+                    ])
                 };
                 let pl = rerank::shape_payloads(&manifest, &included, &opts, &akey, &cache, ps);
                 rerank_notes.push_str(&format!(

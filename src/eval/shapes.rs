@@ -78,9 +78,17 @@ impl Progress {
     }
 }
 
-/// Part of the analysis cache key besides the mesh bytes and the options: the crate version, so
-/// that a new release never reuses spectra computed by an older solver.
-pub(crate) const ANALYSIS_VERSION: &str = concat!("shapeseek ", env!("CARGO_PKG_VERSION"));
+/// Part of the analysis cache key besides the mesh bytes and the options: the crate version and
+/// [`crate::revision_tag`], so that neither a new release nor a later revision of the numerical
+/// core reuses spectra or signatures computed by older code (the signature keys extend the
+/// analysis key).
+pub(crate) fn analysis_version() -> String {
+    format!(
+        "shapeseek {}{}",
+        env!("CARGO_PKG_VERSION"),
+        crate::revision_tag()
+    )
+}
 
 /// The signatures of one shape (one per union specification), or why it failed.
 pub(super) type ShapeResult = std::result::Result<Vec<Signature>, (String, String)>;
@@ -149,7 +157,7 @@ fn process_group(
 ) -> ShapeResult {
     let fail = |e: Error| (e.code().to_string(), e.to_string());
     let content = hash_parts(&[bytes]);
-    let akey = hash_parts(&[content.as_bytes(), opts_json, ANALYSIS_VERSION.as_bytes()]);
+    let akey = hash_parts(&[content.as_bytes(), opts_json, analysis_version().as_bytes()]);
     let mut sigs: Vec<Option<Signature>> = Vec::with_capacity(specs.len());
     let t = Instant::now();
     let mut index: Option<Vec<IndexEntry>> = None;

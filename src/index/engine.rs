@@ -54,14 +54,16 @@ impl Engine {
     /// A stable key of the signature spec: stored signatures with another key are stale. The
     /// eigenpair count changes the signature too: part of the key; so does handle cutting in
     /// preparation (`+cut<hash of its options>` before `-k`, absent without it, so keys of
-    /// indexes built without cutting are unchanged). A changed key makes the server recompute
+    /// indexes built without cutting are unchanged), and so does [`crate::ALGORITHM_REVISION`]
+    /// (`+r<N>` at the end, absent at revision 0). A changed key makes the server recompute
     /// every stored signature (and payload) from the stored originals at start-up.
     pub fn spec_key(&self) -> String {
         format!(
-            "{}{}-k{}",
+            "{}{}-k{}{}",
             self.config.signature.key(),
             self.analysis_tag(),
-            self.analyze.eigen.k
+            self.analyze.eigen.k,
+            crate::revision_tag()
         )
     }
 
@@ -96,10 +98,11 @@ impl Engine {
     /// covers the analysis options).
     pub fn signature_spec_key(&self, sig: &Signature) -> String {
         format!(
-            "{}{}-k{}",
+            "{}{}-k{}{}",
             sig.spec_key,
             self.analysis_tag(),
-            self.analyze.eigen.k
+            self.analyze.eigen.k,
+            crate::revision_tag()
         )
     }
 
@@ -229,9 +232,10 @@ mod tests {
         assert_eq!(
             plain.spec_key(),
             format!(
-                "{}-k{}",
+                "{}-k{}{}",
                 plain.config.signature.key(),
-                plain.analyze.eigen.k
+                plain.analyze.eigen.k,
+                crate::revision_tag()
             )
         );
         let mut cut = Engine::new();

@@ -1,0 +1,142 @@
+//! The numerical core's output, pinned to `shapeseek::ALGORITHM_REVISION`.
+//!
+//! A welded sample biped goes through the product's path: preparation with the default's handle
+//! cutting, the eigenpairs and the default signature (`index::engine::Engine`, as `serve` and
+//! `eval --config default` compute it). A few figures of each stage must equal the ones recorded
+//! below for the current revision (integers exactly, reals to 1e-6 relative).
+//!
+//! When this fails after a change that moves spectra or signatures on purpose, bump
+//! `ALGORITHM_REVISION` in `src/lib.rs` and paste the figures the failure prints: stored indexes
+//! then recompute their signatures at the next start, and eval's cache stops serving the older
+//! code's analyses. When the change was not meant to move them, the failure found a regression.
+
+use shapeseek::index::engine::Engine;
+use shapeseek::mesh::samples::class_mesh;
+use shapeseek::mesh::weld::{weld, WeldOptions};
+use shapeseek::signature::ChannelValues;
+use shapeseek::spectrum::analyze;
+use shapeseek::ALGORITHM_REVISION;
+
+/// Revision the figures below were recorded at.
+const RECORDED_AT: u32 = 0;
+
+/// Vertices and faces of the prepared (cut) mesh, vertices of the signature's mesh.
+const RECORDED_COUNTS: [usize; 3] = [4819, 9572, 4819];
+
+/// Eigenvalues 1–8, then per channel the sketch's total mass and its quantiles at 10, 50 and
+/// 90 %, then the signature's area.
+const RECORDED: &[f64] = &[
+    6.698553331821036,
+    13.690990496838664,
+    14.270558689116001,
+    19.79882613817764,
+    30.59973720958614,
+    62.62054032816202,
+    78.28903229759395,
+    80.44101047349181,
+    0.9999999999999976,
+    1.0576580452689928,
+    2.454558199960378,
+    3.663632102191774,
+    0.9999999999999932,
+    0.4335068159102068,
+    1.588729757682824,
+    2.5463274838454497,
+    1.0000000000000007,
+    0.18745771199225586,
+    0.7690050995122338,
+    1.377571336994386,
+    0.7438283443973497,
+    0.8941571541152668,
+    2.0712746870672354,
+    2.9148342369741496,
+    0.7142553749886411,
+    0.3391403308556119,
+    1.209080377182317,
+    1.9372673808102991,
+    0.7438998781117984,
+    0.14752290082844424,
+    0.5953160977839276,
+    0.9716340349983408,
+    0.9999999999999987,
+];
+
+fn figures() -> ([usize; 3], Vec<f64>) {
+    let biped = class_mesh("biped", 0, false);
+    let (welded, report) = weld(
+        &biped,
+        &WeldOptions {
+            bridges: 2,
+            disc_radius_edges: 2.0,
+            seed: 42,
+            ..WeldOptions::default()
+        },
+    )
+    .expect("the biped welds");
+    assert!(report.made >= 1, "no bridge made: {report:?}");
+    let engine = Engine::new();
+    let analysis = analyze(&welded, &engine.analyze_options()).expect("analysis");
+    let sig = engine.compute(&analysis).expect("signature");
+    let counts = [
+        analysis.mesh.vertices.len(),
+        analysis.mesh.faces.len(),
+        sig.vertices,
+    ];
+    let mut v: Vec<f64> = analysis
+        .spectrum
+        .eigenvalues
+        .iter()
+        .skip(1)
+        .take(8)
+        .copied()
+        .collect();
+    for c in &sig.channels {
+        match &c.values {
+            ChannelValues::Distribution(s) => {
+                let q = s.quantiles.len() - 1;
+                v.push(s.mass);
+                for j in [q / 10, q / 2, 9 * q / 10] {
+                    v.push(s.quantiles[j]);
+                }
+            }
+            ChannelValues::Vector(x) => v.extend(x.iter().take(4)),
+        }
+    }
+    v.push(sig.area);
+    (counts, v)
+}
+
+#[test]
+fn the_core_computes_what_its_revision_recorded() {
+    let (counts, v) = figures();
+    let paste = format!(
+        "const RECORDED_AT: u32 = {ALGORITHM_REVISION};\n\
+         const RECORDED_COUNTS: [usize; 3] = {counts:?};\n\
+         const RECORDED: &[f64] = &{v:?};"
+    );
+    assert_eq!(
+        RECORDED_AT, ALGORITHM_REVISION,
+        "ALGORITHM_REVISION moved: record its figures in tests/revision.rs:\n{paste}"
+    );
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(b.abs()) + 1e-12;
+    let same = counts == RECORDED_COUNTS
+        && v.len() == RECORDED.len()
+        && v.iter().zip(RECORDED).all(|(&a, &b)| close(a, b));
+    if !same {
+        let moved: Vec<String> = v
+            .iter()
+            .zip(RECORDED)
+            .enumerate()
+            .filter(|(_, (&a, &b))| !close(a, b))
+            .map(|(i, (a, b))| format!("#{i}: {b} -> {a}"))
+            .collect();
+        panic!(
+            "the numerical core's output moved at revision {ALGORITHM_REVISION} (counts \
+             {RECORDED_COUNTS:?} -> {counts:?}, {} of {} figures: {}). If that is meant, bump \
+             shapeseek::ALGORITHM_REVISION (src/lib.rs) and paste:\n{paste}",
+            moved.len(),
+            RECORDED.len(),
+            moved.join(", ")
+        );
+    }
+}
