@@ -32,9 +32,10 @@ pub use error::{Error, Result};
 /// handle cutting, the eigenpairs and the signatures. Bump it with every change that moves them
 /// on purpose (`tests/revision.rs` fails until it is bumped and its recorded figures updated):
 /// a stored index then finds every signature stale at its next start and recomputes it from the
-/// stored original (the spec key carries [`revision_tag`]), and eval's cache no longer serves
-/// analyses or signatures of the older code. Specifications, options and the package version
-/// are keyed on their own; this covers the code behind them.
+/// stored original (every signature carries its spec's key, which ends in [`revision_tag`]:
+/// [`signature::SignatureSpec::key`]), and eval's cache no longer serves analyses or signatures
+/// of the older code (its analysis key carries the tag too). Specifications, options and the
+/// package version are keyed on their own; this covers the code behind them.
 pub const ALGORITHM_REVISION: u32 = 0;
 
 /// The part of spec and cache keys that names [`ALGORITHM_REVISION`]: empty for revision 0 (the

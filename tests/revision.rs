@@ -6,7 +6,8 @@
 //! below for the current revision (integers exactly, reals to 1e-6 relative).
 //!
 //! When this fails after a change that moves spectra or signatures on purpose, bump
-//! `ALGORITHM_REVISION` in `src/lib.rs` and paste the figures the failure prints: stored indexes
+//! `ALGORITHM_REVISION` in `src/lib.rs` and paste the figures the failure prints (recorded at
+//! the next revision, so pasting them without the bump still fails): stored indexes
 //! then recompute their signatures at the next start, and eval's cache stops serving the older
 //! code's analyses. When the change was not meant to move them, the failure found a regression.
 
@@ -116,7 +117,9 @@ fn the_core_computes_what_its_revision_recorded() {
     );
     assert_eq!(
         RECORDED_AT, ALGORITHM_REVISION,
-        "ALGORITHM_REVISION moved: record its figures in tests/revision.rs:\n{paste}"
+        "the figures below were recorded at revision {RECORDED_AT}, the code is at \
+         ALGORITHM_REVISION = {ALGORITHM_REVISION}: set one to the other (src/lib.rs), or, when \
+         the revision was bumped on purpose, record its figures here:\n{paste}"
     );
     let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(b.abs()) + 1e-12;
     let same = counts == RECORDED_COUNTS
@@ -130,13 +133,20 @@ fn the_core_computes_what_its_revision_recorded() {
             .filter(|(_, (&a, &b))| !close(a, b))
             .map(|(i, (a, b))| format!("#{i}: {b} -> {a}"))
             .collect();
+        let next = format!(
+            "const RECORDED_AT: u32 = {};\n\
+             const RECORDED_COUNTS: [usize; 3] = {counts:?};\n\
+             const RECORDED: &[f64] = &{v:?};",
+            ALGORITHM_REVISION + 1
+        );
         panic!(
             "the numerical core's output moved at revision {ALGORITHM_REVISION} (counts \
-             {RECORDED_COUNTS:?} -> {counts:?}, {} of {} figures: {}). If that is meant, bump \
-             shapeseek::ALGORITHM_REVISION (src/lib.rs) and paste:\n{paste}",
+             {RECORDED_COUNTS:?} -> {counts:?}, {} of {} figures: {}). If that is meant, set \
+             shapeseek::ALGORITHM_REVISION (src/lib.rs) to {} and paste:\n{next}",
             moved.len(),
             RECORDED.len(),
-            moved.join(", ")
+            moved.join(", "),
+            ALGORITHM_REVISION + 1
         );
     }
 }

@@ -54,16 +54,16 @@ impl Engine {
     /// A stable key of the signature spec: stored signatures with another key are stale. The
     /// eigenpair count changes the signature too: part of the key; so does handle cutting in
     /// preparation (`+cut<hash of its options>` before `-k`, absent without it, so keys of
-    /// indexes built without cutting are unchanged), and so does [`crate::ALGORITHM_REVISION`]
-    /// (`+r<N>` at the end, absent at revision 0). A changed key makes the server recompute
-    /// every stored signature (and payload) from the stored originals at start-up.
+    /// indexes built without cutting are unchanged); the signature key carries
+    /// [`crate::ALGORITHM_REVISION`] ([`crate::signature::SignatureSpec::key`]). A changed key
+    /// makes the server recompute every stored signature (and payload) from the stored originals
+    /// at start-up.
     pub fn spec_key(&self) -> String {
         format!(
-            "{}{}-k{}{}",
+            "{}{}-k{}",
             self.config.signature.key(),
             self.analysis_tag(),
-            self.analyze.eigen.k,
-            crate::revision_tag()
+            self.analyze.eigen.k
         )
     }
 
@@ -98,11 +98,10 @@ impl Engine {
     /// covers the analysis options).
     pub fn signature_spec_key(&self, sig: &Signature) -> String {
         format!(
-            "{}{}-k{}{}",
+            "{}{}-k{}",
             sig.spec_key,
             self.analysis_tag(),
-            self.analyze.eigen.k,
-            crate::revision_tag()
+            self.analyze.eigen.k
         )
     }
 
@@ -232,10 +231,9 @@ mod tests {
         assert_eq!(
             plain.spec_key(),
             format!(
-                "{}-k{}{}",
+                "{}-k{}",
                 plain.config.signature.key(),
-                plain.analyze.eigen.k,
-                crate::revision_tag()
+                plain.analyze.eigen.k
             )
         );
         let mut cut = Engine::new();

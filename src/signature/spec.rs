@@ -425,11 +425,14 @@ impl SignatureSpec {
         }
     }
 
-    /// Stable key (hex SHA-256 prefix of the canonical JSON of the spec) for caches.
+    /// Stable key for caches and stored signatures: the hex SHA-256 prefix of the canonical JSON
+    /// of the spec, followed by [`crate::revision_tag`] (nothing at revision 0, `+r<N>` after),
+    /// so that a signature computed by an older revision of the code has another key
+    /// ([`Signature::spec_key`](crate::signature::Signature::spec_key)) and is recomputed.
     pub fn key(&self) -> String {
         let json = serde_json::to_string(self).unwrap_or_default();
         let digest = Sha256::digest(json.as_bytes());
-        hex::encode(&digest[..12])
+        format!("{}{}", hex::encode(&digest[..12]), crate::revision_tag())
     }
 
     /// The analysis options a shape must be analysed with for this spec: `base` with this
