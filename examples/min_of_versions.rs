@@ -5,12 +5,13 @@
 //! cargo run --release --example cut_handles -- M /tmp/v/s9 '{"max_loop_rel":0.5,"max_neck_aspect":3,"max_side_aspect":0.9}'
 //! cargo run --release --example cut_handles -- M /tmp/v/d '{"max_loop_rel":0.5,"max_neck_aspect":1e9}'
 //! python3 scripts/analysis/combine_manifests.py s9=/tmp/v/s9/manifest.csv d=/tmp/v/d/manifest.csv > /tmp/v/both.csv
-//! shapeseek eval --manifest /tmp/v/both.csv --config FIRST_STAGE.json --window-percentile 0.9 --matrices /tmp/v/m.json
+//! shapeseek eval --manifest /tmp/v/both.csv --config docs/quality/default-nocut-first-stage.json --window-percentile 0.9 --matrices /tmp/v/m.json
 //! cargo run --release --example min_of_versions -- /tmp/v/m.json s9 d
 //! ```
 //!
 //! The matrices file must hold one configuration without re-ranking stages (its values are then
-//! the first-stage dissimilarities) over a manifest whose ids end in `~A` and `~B` for the two
+//! the first-stage dissimilarities; `docs/quality/default-nocut-first-stage.json` is the
+//! default's first stage, for meshes already cut) over a manifest whose ids end in `~A` and `~B` for the two
 //! versions of the same shapes in the same order (`combine_manifests.py` writes it; one eval run
 //! ranks both under one calibration). Three dissimilarity matrices are formed over the shapes:
 //! `A`, `B` and `min(A, B)` entry by entry — a pair is as similar as its more similar version
@@ -20,6 +21,8 @@
 //! leave-one-class-out protocol with candidates `A` and `min` (per fold, the better held-in All,
 //! with queries and candidates restricted to the other classes and the stage re-run; `B` is
 //! reported held fixed only, as the version whose cutting need not keep genuine handles).
+//! Columns are the bench's eight transformations (`–` where a class has none; other
+//! transformations count in All only).
 
 use shapeseek::eval::metrics::{self, Evaluation};
 use shapeseek::eval::rerank::{rerank_matrix, PairCache};
@@ -177,10 +180,10 @@ fn run() -> Res<()> {
         names[2]
     );
     println!("|---|---|---|{}---|---|", "---|".repeat(TRANSFORMS.len()));
-    let folds = s.class_names.len() as f64;
-    let mut selected = [0.0; TRANSFORMS.len() + 1];
-    let mut fixed = [[0.0; TRANSFORMS.len() + 1]; 3];
+    let mut selected = FoldMeans::default();
+    let mut fixed: [FoldMeans; 3] = Default::default();
     let mut chosen_min = 0;
+    let all_col = TRANSFORMS.len();
     for (c, cname) in s.class_names.iter().enumerate() {
         let held_in: Vec<bool> = s.classes.iter().map(|&k| k != c).collect();
         let hin: Vec<f64> = variants
@@ -195,43 +198,30 @@ fn run() -> Res<()> {
         let ch = if hin[2] > hin[0] { 2 } else { 0 };
         chosen_min += usize::from(ch == 2);
         let row = held_out(&full[ch], &s, c);
-        for (acc, x) in selected.iter_mut().zip(&row) {
-            *acc += x / folds;
-        }
-        for (f, e) in fixed.iter_mut().zip(&full) {
-            for (acc, x) in f.iter_mut().zip(held_out(e, &s, c)) {
-                *acc += x / folds;
-            }
+        selected.add(&row);
+        let rows: Vec<Vec<Option<f64>>> = full.iter().map(|e| held_out(e, &s, c)).collect();
+        for (f, r) in fixed.iter_mut().zip(&rows) {
+            f.add(r);
         }
         println!(
-            "| {cname} | {:.2} / {:.2} / {:.2} | {} | {} | {:.2} / {:.2} / {:.2} |",
+            "| {cname} | {:.2} / {:.2} / {:.2} | {} | {} | {} |",
             100.0 * hin[0],
             100.0 * hin[1],
             100.0 * hin[2],
             names[ch],
-            row.iter()
-                .map(|x| format!("{x:.2}"))
-                .collect::<Vec<_>>()
-                .join(" | "),
-            held_out(&full[0], &s, c)[TRANSFORMS.len()],
-            held_out(&full[1], &s, c)[TRANSFORMS.len()],
-            held_out(&full[2], &s, c)[TRANSFORMS.len()],
+            cells_line(&row),
+            cells_line(&[rows[0][all_col], rows[1][all_col], rows[2][all_col]])
+                .replace(" | ", " / "),
         );
     }
-    let line = |v: &[f64]| {
-        v.iter()
-            .map(|x| format!("{x:.2}"))
-            .collect::<Vec<_>>()
-            .join(" | ")
-    };
     println!(
         "| **selected, mean** | | {chosen_min} of {} folds {} | {} | |",
         s.class_names.len(),
         names[2],
-        line(&selected)
+        selected.line()
     );
     for (name, f) in names.iter().zip(&fixed) {
-        println!("| {name} held fixed, mean | | | {} | |", line(f));
+        println!("| {name} held fixed, mean | | | {} | |", f.line());
     }
     Ok(())
 }
@@ -253,8 +243,9 @@ fn ranked(d: &[f64], n: usize, s: &Shapes, included: &[bool]) -> Evaluation {
     metrics::evaluate(&r, n, &s.classes, &s.transforms, &s.strengths, included)
 }
 
-/// mAP % of class `c`'s queries per transformation, then over all of them.
-fn held_out(e: &Evaluation, s: &Shapes, c: usize) -> Vec<f64> {
+/// mAP % of class `c`'s queries per transformation, then over all of them (`None` where the
+/// class has no query of that transformation).
+fn held_out(e: &Evaluation, s: &Shapes, c: usize) -> Vec<Option<f64>> {
     let mean = |t: Option<&str>| {
         let aps: Vec<f64> = e
             .queries
@@ -262,13 +253,44 @@ fn held_out(e: &Evaluation, s: &Shapes, c: usize) -> Vec<f64> {
             .filter(|q| s.classes[q.index] == c && t.is_none_or(|t| s.transforms[q.index] == t))
             .filter_map(|q| q.ap)
             .collect();
-        100.0 * aps.iter().sum::<f64>() / aps.len().max(1) as f64
+        (!aps.is_empty()).then(|| 100.0 * aps.iter().sum::<f64>() / aps.len() as f64)
     };
     TRANSFORMS
         .iter()
         .map(|&t| mean(Some(t)))
         .chain([mean(None)])
         .collect()
+}
+
+/// Mean over the folds per column, of the folds that have the column.
+#[derive(Default)]
+struct FoldMeans(Vec<(f64, usize)>);
+
+impl FoldMeans {
+    fn add(&mut self, row: &[Option<f64>]) {
+        self.0.resize(row.len(), (0.0, 0));
+        for (acc, x) in self.0.iter_mut().zip(row) {
+            if let Some(x) = x {
+                *acc = (acc.0 + x, acc.1 + 1);
+            }
+        }
+    }
+
+    fn line(&self) -> String {
+        let cells: Vec<Option<f64>> = self
+            .0
+            .iter()
+            .map(|&(s, n)| (n > 0).then(|| s / n as f64))
+            .collect();
+        cells_line(&cells)
+    }
+}
+
+fn cells_line(v: &[Option<f64>]) -> String {
+    v.iter()
+        .map(|x| x.map_or_else(|| "–".into(), |x| format!("{x:.2}")))
+        .collect::<Vec<_>>()
+        .join(" | ")
 }
 
 fn pct(x: Option<f64>) -> String {

@@ -30,6 +30,8 @@ def main():
         if header is None:
             header = list(rows[0].keys())
             out.writerow(header)
+        elif list(rows[0].keys()) != header:
+            sys.exit(f"{path}: columns {list(rows[0].keys())}, the first manifest has {header}")
         these = [r["id"] for r in rows]
         if ids is None:
             ids = these
