@@ -6,23 +6,25 @@
 //! cargo run --release --example cut_handles -- M /tmp/v/d '{"max_loop_rel":0.5,"max_neck_aspect":1e9}'
 //! python3 scripts/analysis/combine_manifests.py s9=/tmp/v/s9/manifest.csv d=/tmp/v/d/manifest.csv > /tmp/v/both.csv
 //! shapeseek eval --manifest /tmp/v/both.csv --config docs/quality/default-nocut-first-stage.json --window-percentile 0.9 --matrices /tmp/v/m.json
-//! cargo run --release --example min_of_versions -- /tmp/v/m.json s9 d
+//! cargo run --release --example min_of_versions -- /tmp/v/m.json s9 d [1,1.1,1.2]
 //! ```
 //!
 //! The matrices file must hold one configuration without re-ranking stages (its values are then
 //! the first-stage dissimilarities; `docs/quality/default-nocut-first-stage.json` is the
-//! default's first stage, for meshes already cut) over a manifest whose ids end in `~A` and `~B` for the two
-//! versions of the same shapes in the same order (`combine_manifests.py` writes it; one eval run
-//! ranks both under one calibration). Three dissimilarity matrices are formed over the shapes:
-//! `A`, `B` and `min(A, B)` entry by entry — a pair is as similar as its more similar version
-//! pair. Each is re-ranked by the default's reciprocal stage ([`ReciprocalStage::default`], the
-//! machinery of `shapeseek eval`) and scored as eval scores: mAP per transformation class and
-//! per strength of topology and isometry+topology over the full set, then eval's
-//! leave-one-class-out protocol with candidates `A` and `min` (per fold, the better held-in All,
-//! with queries and candidates restricted to the other classes and the stage re-run; `B` is
-//! reported held fixed only, as the version whose cutting need not keep genuine handles).
-//! Columns are the bench's eight transformations (`–` where a class has none; other
-//! transformations count in All only).
+//! default's first stage, for meshes cut beforehand) over a manifest whose ids end in `~A` and
+//! `~B` for the two versions of the same shapes in the same order (`combine_manifests.py`
+//! writes it; one eval run ranks both under one calibration). The dissimilarity matrices formed
+//! over the shapes are `A`, `B` and, per margin `f` of `MARGINS` (comma-separated, each ≥ 1;
+//! default `1`), `min(A, f·B)` entry by entry: a pair is as similar as its more similar version
+//! pair, the second version counting only when closer by the factor `f`. Each is re-ranked by
+//! the default's reciprocal stage ([`ReciprocalStage::default`], with eval's own machinery) and
+//! scored as eval scores: mAP per transformation class and per strength of topology and
+//! isometry+topology over the full set, then eval's leave-one-class-out protocol with
+//! candidates `A` and every minimum (per fold, the best held-in All, ties to the earlier, with
+//! queries and candidates restricted to the other classes and the stage re-run; `B` is reported
+//! held fixed only, as the version whose cutting need not keep genuine handles). Columns are
+//! the bench's eight transformations (`–` where a class has none; other transformations count
+//! in All only).
 
 use shapeseek::eval::metrics::{self, Evaluation};
 use shapeseek::eval::rerank::{rerank_matrix, PairCache};
@@ -58,8 +60,19 @@ struct Shapes {
 
 fn run() -> Res<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    if args.len() != 3 {
-        return Err("usage: min_of_versions MATRICES_JSON A B".into());
+    if args.len() != 3 && args.len() != 4 {
+        return Err("usage: min_of_versions MATRICES_JSON A B [MARGINS]".into());
+    }
+    let margins: Vec<f64> = match args.get(3) {
+        None => vec![1.0],
+        Some(m) => m
+            .split(',')
+            .map(|x| x.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| format!("MARGINS {m:?}: {e}"))?,
+    };
+    if margins.iter().any(|f| !(f.is_finite() && *f >= 1.0)) {
+        return Err(format!("MARGINS {margins:?}: every margin must be ≥ 1").into());
     }
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&args[0])?)?;
     let shapes = v["shapes"].as_array().ok_or("no `shapes` array")?;
@@ -103,7 +116,6 @@ fn run() -> Res<()> {
             db[x * n + y] = at(b[x], b[y])?;
         }
     }
-    let dmin: Vec<f64> = da.iter().zip(&db).map(|(p, q)| p.min(*q)).collect();
 
     let mut class_names: Vec<String> = Vec::new();
     let mut classes = Vec::new();
@@ -132,12 +144,18 @@ fn run() -> Res<()> {
             .map(|&i| shapes[i]["strength"].as_i64().unwrap_or(0))
             .collect(),
     };
-    let names = [
-        args[1].clone(),
-        args[2].clone(),
-        format!("min({},{})", args[1], args[2]),
-    ];
-    let variants: [&[f64]; 3] = [&da, &db, &dmin];
+    let mut names = vec![args[1].clone(), args[2].clone()];
+    let mut variants: Vec<Vec<f64>> = vec![da.clone(), db.clone()];
+    for &f in &margins {
+        names.push(if f == 1.0 {
+            format!("min({},{})", args[1], args[2])
+        } else {
+            format!("min({},{}·{f})", args[1], args[2])
+        });
+        variants.push(da.iter().zip(&db).map(|(p, q)| p.min(f * q)).collect());
+    }
+    // Candidates of the protocol: A and every minimum (B is reported held fixed only).
+    let candidates: Vec<usize> = std::iter::once(0).chain(2..variants.len()).collect();
     let all = vec![true; n];
     let full: Vec<Evaluation> = variants.iter().map(|d| ranked(d, n, &s, &all)).collect();
 
@@ -165,38 +183,37 @@ fn run() -> Res<()> {
         );
     }
 
+    let cand_names: Vec<&str> = candidates.iter().map(|&v| names[v].as_str()).collect();
     println!(
-        "\n## Leave-one-class-out, candidates {} and {} (mAP %)\n",
-        names[0], names[2]
+        "\n## Leave-one-class-out, candidates {} (mAP %)\n",
+        cand_names.join(", ")
     );
     println!(
-        "| held out | held-in All {} / {} / {} | chosen | {} | All | held fixed: All {} / {} / {} |",
-        names[0],
-        names[1],
-        names[2],
+        "| held out | held-in All {} | chosen | {} | All | held fixed: All {} |",
+        cand_names.join(" / "),
         TRANSFORMS.join(" | "),
-        names[0],
-        names[1],
-        names[2]
+        names.join(" / ")
     );
     println!("|---|---|---|{}---|---|", "---|".repeat(TRANSFORMS.len()));
     let mut selected = FoldMeans::default();
-    let mut fixed: [FoldMeans; 3] = Default::default();
-    let mut chosen_min = 0;
+    let mut fixed: Vec<FoldMeans> = names.iter().map(|_| FoldMeans::default()).collect();
+    let mut chosen_count = vec![0usize; variants.len()];
     let all_col = TRANSFORMS.len();
     for (c, cname) in s.class_names.iter().enumerate() {
         let held_in: Vec<bool> = s.classes.iter().map(|&k| k != c).collect();
-        let hin: Vec<f64> = variants
+        let hin: Vec<f64> = candidates
             .iter()
-            .map(|d| {
-                ranked(d, n, &s, &held_in)
+            .map(|&v| {
+                ranked(&variants[v], n, &s, &held_in)
                     .group(metrics::ALL)
                     .and_then(|g| g.map)
+                    .unwrap_or(0.0)
             })
-            .map(|x| x.unwrap_or(0.0))
             .collect();
-        let ch = if hin[2] > hin[0] { 2 } else { 0 };
-        chosen_min += usize::from(ch == 2);
+        // The best held-in All; ties: the earlier candidate (as eval's protocol).
+        let best = (0..candidates.len()).fold(0, |b, i| if hin[i] > hin[b] { i } else { b });
+        let ch = candidates[best];
+        chosen_count[ch] += 1;
         let row = held_out(&full[ch], &s, c);
         selected.add(&row);
         let rows: Vec<Vec<Option<f64>>> = full.iter().map(|e| held_out(e, &s, c)).collect();
@@ -204,20 +221,25 @@ fn run() -> Res<()> {
             f.add(r);
         }
         println!(
-            "| {cname} | {:.2} / {:.2} / {:.2} | {} | {} | {} |",
-            100.0 * hin[0],
-            100.0 * hin[1],
-            100.0 * hin[2],
+            "| {cname} | {} | {} | {} | {} |",
+            hin.iter()
+                .map(|x| format!("{:.2}", 100.0 * x))
+                .collect::<Vec<_>>()
+                .join(" / "),
             names[ch],
             cells_line(&row),
-            cells_line(&[rows[0][all_col], rows[1][all_col], rows[2][all_col]])
-                .replace(" | ", " / "),
+            cells_line(&rows.iter().map(|r| r[all_col]).collect::<Vec<_>>()).replace(" | ", " / "),
         );
     }
+    let chosen: Vec<String> = candidates
+        .iter()
+        .filter(|&&v| chosen_count[v] > 0)
+        .map(|&v| format!("{} in {}", names[v], chosen_count[v]))
+        .collect();
     println!(
-        "| **selected, mean** | | {chosen_min} of {} folds {} | {} | |",
+        "| **selected, mean** | | {} of {} folds | {} | |",
+        chosen.join(", "),
         s.class_names.len(),
-        names[2],
         selected.line()
     );
     for (name, f) in names.iter().zip(&fixed) {
