@@ -1,8 +1,8 @@
 //! The numerical core's output, pinned to `shapeseek::ALGORITHM_REVISION`.
 //!
 //! A welded sample biped goes through the product's path: preparation with the default's handle
-//! cutting, the eigenpairs and the default signature (`index::engine::Engine`, as `serve` and
-//! `eval --config default` compute it). A few figures of each stage must equal the ones recorded
+//! cutting, the eigenpairs, the default signature (`index::engine::Engine`, as `serve` and
+//! `eval --config default` compute it) and the re-ranking payload the server stores with it. A few figures of each stage must equal the ones recorded
 //! below for the current revision (integers exactly, reals to 1e-6 relative).
 //!
 //! When this fails after a change that moves spectra or signatures on purpose, bump
@@ -14,6 +14,7 @@
 use shapeseek::index::engine::Engine;
 use shapeseek::mesh::samples::class_mesh;
 use shapeseek::mesh::weld::{weld, WeldOptions};
+use shapeseek::rerank::{compute_payload, PayloadSpec};
 use shapeseek::signature::ChannelValues;
 use shapeseek::spectrum::analyze;
 use shapeseek::ALGORITHM_REVISION;
@@ -21,11 +22,13 @@ use shapeseek::ALGORITHM_REVISION;
 /// Revision the figures below were recorded at.
 const RECORDED_AT: u32 = 0;
 
-/// Vertices and faces of the prepared (cut) mesh, vertices of the signature's mesh.
-const RECORDED_COUNTS: [usize; 3] = [4819, 9572, 4819];
+/// Vertices and faces of the prepared (cut) mesh, vertices of the signature's mesh, samples of
+/// the payload.
+const RECORDED_COUNTS: [usize; 4] = [4819, 9572, 4819, 100];
 
 /// Eigenvalues 1–8, then per channel the sketch's total mass and its quantiles at 10, 50 and
-/// 90 %, then the signature's area.
+/// 90 %, then the signature's area; then the payload's first sample weight, the mean of its
+/// distances per time and its `lambda1`.
 const RECORDED: &[f64] = &[
     6.698553331821036,
     13.690990496838664,
@@ -60,9 +63,14 @@ const RECORDED: &[f64] = &[
     0.5953160977839276,
     0.9716340349983408,
     0.9999999999999987,
+    0.012083825923129784,
+    2.460301521199219,
+    1.592338511540291,
+    0.7984462107262913,
+    6.698553331821036,
 ];
 
-fn figures() -> ([usize; 3], Vec<f64>) {
+fn figures() -> ([usize; 4], Vec<f64>) {
     let biped = class_mesh("biped", 0, false);
     let (welded, report) = weld(
         &biped,
@@ -78,10 +86,12 @@ fn figures() -> ([usize; 3], Vec<f64>) {
     let engine = Engine::new();
     let analysis = analyze(&welded, &engine.analyze_options()).expect("analysis");
     let sig = engine.compute(&analysis).expect("signature");
+    let payload = compute_payload(&analysis, &PayloadSpec::default()).expect("payload");
     let counts = [
         analysis.mesh.vertices.len(),
         analysis.mesh.faces.len(),
         sig.vertices,
+        payload.samples,
     ];
     let mut v: Vec<f64> = analysis
         .spectrum
@@ -104,6 +114,11 @@ fn figures() -> ([usize; 3], Vec<f64>) {
         }
     }
     v.push(sig.area);
+    v.push(payload.weights.first().copied().unwrap_or(f64::NAN));
+    for u in &payload.upper {
+        v.push(u.iter().map(|&x| f64::from(x)).sum::<f64>() / u.len().max(1) as f64);
+    }
+    v.push(payload.lambda1);
     (counts, v)
 }
 
@@ -112,7 +127,7 @@ fn the_core_computes_what_its_revision_recorded() {
     let (counts, v) = figures();
     let paste = format!(
         "const RECORDED_AT: u32 = {ALGORITHM_REVISION};\n\
-         const RECORDED_COUNTS: [usize; 3] = {counts:?};\n\
+         const RECORDED_COUNTS: [usize; 4] = {counts:?};\n\
          const RECORDED: &[f64] = &{v:?};"
     );
     assert_eq!(
@@ -135,16 +150,18 @@ fn the_core_computes_what_its_revision_recorded() {
             .collect();
         let next = format!(
             "const RECORDED_AT: u32 = {};\n\
-             const RECORDED_COUNTS: [usize; 3] = {counts:?};\n\
+             const RECORDED_COUNTS: [usize; 4] = {counts:?};\n\
              const RECORDED: &[f64] = &{v:?};",
             ALGORITHM_REVISION + 1
         );
         panic!(
             "the numerical core's output moved at revision {ALGORITHM_REVISION} (counts \
-             {RECORDED_COUNTS:?} -> {counts:?}, {} of {} figures: {}). If that is meant, set \
+             {RECORDED_COUNTS:?} -> {counts:?}, {} figures for {} recorded, {} of them moved: \
+             {}). If that is meant, set \
              shapeseek::ALGORITHM_REVISION (src/lib.rs) to {} and paste:\n{next}",
-            moved.len(),
+            v.len(),
             RECORDED.len(),
+            moved.len(),
             moved.join(", "),
             ALGORITHM_REVISION + 1
         );
