@@ -23,8 +23,8 @@
 //! candidates `A` and every minimum (per fold, the best held-in All, ties to the earlier, with
 //! queries and candidates restricted to the other classes and the stage re-run; `B` is reported
 //! held fixed only, as the version whose cutting need not keep genuine handles). Columns are
-//! the bench's eight transformations (`–` where a class has none; other transformations count
-//! in All only).
+//! the manifest's transformations in manifest order, as in eval's report (`–` where a class has
+//! none).
 
 use shapeseek::eval::metrics::{self, Evaluation};
 use shapeseek::eval::rerank::{rerank_matrix, PairCache};
@@ -32,17 +32,6 @@ use shapeseek::rerank::ReciprocalStage;
 use shapeseek::search::Stage;
 
 type Res<T> = Result<T, Box<dyn std::error::Error>>;
-
-const TRANSFORMS: [&str; 8] = [
-    "null",
-    "isometry",
-    "topology",
-    "isometry+topology",
-    "partiality",
-    "triangulation",
-    "noise",
-    "scale",
-];
 
 fn main() {
     if let Err(e) = run() {
@@ -55,6 +44,8 @@ struct Shapes {
     classes: Vec<usize>,
     class_names: Vec<String>,
     transforms: Vec<String>,
+    /// The distinct transformations, in manifest order (the report's columns, as eval's).
+    columns: Vec<String>,
     strengths: Vec<i64>,
 }
 
@@ -127,7 +118,7 @@ fn run() -> Res<()> {
         });
         classes.push(k);
     }
-    let s = Shapes {
+    let mut s = Shapes {
         classes,
         class_names,
         transforms: a
@@ -143,17 +134,27 @@ fn run() -> Res<()> {
             .iter()
             .map(|&i| shapes[i]["strength"].as_i64().unwrap_or(0))
             .collect(),
+        columns: Vec::new(),
     };
+    for t in &s.transforms {
+        if !s.columns.contains(t) {
+            s.columns.push(t.clone());
+        }
+    }
     let mut names = vec![args[1].clone(), args[2].clone()];
-    let mut variants: Vec<Vec<f64>> = vec![da.clone(), db.clone()];
+    let mins: Vec<Vec<f64>> = margins
+        .iter()
+        .map(|&f| da.iter().zip(&db).map(|(p, q)| p.min(f * q)).collect())
+        .collect();
     for &f in &margins {
         names.push(if f == 1.0 {
             format!("min({},{})", args[1], args[2])
         } else {
             format!("min({},{}·{f})", args[1], args[2])
         });
-        variants.push(da.iter().zip(&db).map(|(p, q)| p.min(f * q)).collect());
     }
+    let mut variants: Vec<Vec<f64>> = vec![da, db];
+    variants.extend(mins);
     // Candidates of the protocol: A and every minimum (B is reported held fixed only).
     let candidates: Vec<usize> = std::iter::once(0).chain(2..variants.len()).collect();
     let all = vec![true; n];
@@ -162,9 +163,9 @@ fn run() -> Res<()> {
     println!("## Full set, after the reciprocal stage (mAP %)\n");
     println!(
         "| version | {} | All | topology 1-4 | isometry+topology 1-4 |",
-        TRANSFORMS.join(" | ")
+        s.columns.join(" | ")
     );
-    println!("|---|{}---|---|---|", "---|".repeat(TRANSFORMS.len()));
+    println!("|---|{}---|---|---|", "---|".repeat(s.columns.len()));
     for (name, e) in names.iter().zip(&full) {
         let per = |t: &str| {
             (1..=4)
@@ -174,8 +175,10 @@ fn run() -> Res<()> {
         };
         println!(
             "| {name} | {} | {} | {} | {} |",
-            TRANSFORMS
+            s.columns
+                .iter()
                 .map(|t| pct(e.group(t).and_then(|g| g.map)))
+                .collect::<Vec<_>>()
                 .join(" | "),
             pct(e.group(metrics::ALL).and_then(|g| g.map)),
             per("topology"),
@@ -191,14 +194,14 @@ fn run() -> Res<()> {
     println!(
         "| held out | held-in All {} | chosen | {} | All | held fixed: All {} |",
         cand_names.join(" / "),
-        TRANSFORMS.join(" | "),
+        s.columns.join(" | "),
         names.join(" / ")
     );
-    println!("|---|---|---|{}---|---|", "---|".repeat(TRANSFORMS.len()));
+    println!("|---|---|---|{}---|---|", "---|".repeat(s.columns.len()));
     let mut selected = FoldMeans::default();
     let mut fixed: Vec<FoldMeans> = names.iter().map(|_| FoldMeans::default()).collect();
     let mut chosen_count = vec![0usize; variants.len()];
-    let all_col = TRANSFORMS.len();
+    let all_col = s.columns.len();
     for (c, cname) in s.class_names.iter().enumerate() {
         let held_in: Vec<bool> = s.classes.iter().map(|&k| k != c).collect();
         let hin: Vec<f64> = candidates
@@ -277,9 +280,9 @@ fn held_out(e: &Evaluation, s: &Shapes, c: usize) -> Vec<Option<f64>> {
             .collect();
         (!aps.is_empty()).then(|| 100.0 * aps.iter().sum::<f64>() / aps.len() as f64)
     };
-    TRANSFORMS
+    s.columns
         .iter()
-        .map(|&t| mean(Some(t)))
+        .map(|t| mean(Some(t)))
         .chain([mean(None)])
         .collect()
 }
