@@ -499,8 +499,8 @@ fn synthetic_bases(
     payloads: bool,
 ) -> Result<Vec<(Signature, Option<shapeseek::rerank::GwPayload>)>> {
     use shapeseek::rerank::{compute_payload, PayloadSpec};
-    use shapeseek::signature::compute_signature;
-    use shapeseek::spectrum::{analyze, AnalyzeOptions};
+    use shapeseek::signature::sign;
+    use shapeseek::spectrum::AnalyzeOptions;
     (0..SYNTHETIC_BASES)
         .into_par_iter()
         .map(|j| {
@@ -517,13 +517,15 @@ fn synthetic_bases(
             for v in &mut m.vertices {
                 *v = [v[0] * s[0], v[1] * s[1], v[2] * s[2]];
             }
-            let a = analyze(&m, &AnalyzeOptions::default())?;
+            // As the server signs (both cut versions when the spec has an alternate cut: the
+            // bumpy tori are genuine handles, which the default's second cut takes).
+            let (a, sig) = sign(&m, spec, &AnalyzeOptions::default())?;
             let p = if payloads {
                 Some(compute_payload(&a, &PayloadSpec::default())?)
             } else {
                 None
             };
-            Ok((compute_signature(&a, spec)?, p))
+            Ok((sig, p))
         })
         .collect()
 }
@@ -544,7 +546,7 @@ fn synthetic_signature(
     scaled(sig, 1.0 + spread * (2.0 * unit(i as u64) - 1.0))
 }
 
-/// `sig` with every distance multiplied by `f`.
+/// `sig` with every distance multiplied by `f` (its second cut version's too).
 fn scaled(sig: &Signature, f: f64) -> Signature {
     use shapeseek::signature::ChannelValues;
     let mut sig = sig.clone();
@@ -553,6 +555,7 @@ fn scaled(sig: &Signature, f: f64) -> Signature {
             q.quantiles.iter_mut().for_each(|x| *x *= f);
         }
     }
+    sig.alternate = sig.alternate.map(|a| Box::new(scaled(&a, f)));
     sig
 }
 

@@ -76,6 +76,7 @@ fn config(
             channels,
             dissimilarity: d,
             aggregation: a,
+            alternate_margin: crate::ranking::DEFAULT_ALTERNATE_MARGIN,
         },
         rerank: Vec::new(),
         calibration: CalibrationOptions::default(),
@@ -344,12 +345,14 @@ pub fn default_config() -> Config {
         eigenpairs: Some(crate::scale::WEYL_FIT_EIGENPAIRS),
     };
     spec.cut_handles = Some(DEFAULT_HANDLE_CUT);
+    spec.alternate_cut = Some(DEFAULT_ALTERNATE_CUT);
     Config {
         name: "default".into(),
         query: QuerySpec {
             channels: spec.channel_names(),
             dissimilarity: Dissimilarity::NL1,
             aggregation: Aggregation::Sum,
+            alternate_margin: crate::ranking::DEFAULT_ALTERNATE_MARGIN,
         },
         signature: spec,
         rerank: vec![Stage::Reciprocal(ReciprocalStage::default())],
@@ -391,6 +394,27 @@ pub const DEFAULT_HANDLE_CUT: HandleCutOptions = HandleCutOptions {
     max_loop_rel: 0.5,
     max_neck_aspect: 3.0,
     max_side_aspect: 0.9,
+    stub_aspect: 0.0,
+    free_loop_rel: 0.0,
+    growth: 2.0,
+    roots: 8,
+    refine_roots: 3,
+    max_cuts: 16,
+    remove_band: true,
+};
+
+/// The default's second cut ([`crate::signature::SignatureSpec::alternate_cut`]): every basis
+/// loop with `L/√A ≤ 0.5`, whatever its aspects — genuine handles too, which
+/// [`DEFAULT_HANDLE_CUT`] keeps. A shape the two rules cut differently is compared both ways
+/// and a pair scores the smaller, the cut one multiplied by
+/// [`crate::ranking::DEFAULT_ALTERNATE_MARGIN`] ([`crate::search::Query::score`]): a weld the
+/// first rule must leave because it looks like a genuine handle (limb-to-limb welds, which
+/// neither aspect test takes) is compared cut, while a genuine handle keeps its uncut
+/// comparison. Chosen by the leave-one-class-out protocol (`docs/quality.md` §16–§17).
+pub const DEFAULT_ALTERNATE_CUT: HandleCutOptions = HandleCutOptions {
+    max_loop_rel: 0.5,
+    max_neck_aspect: 1e9,
+    max_side_aspect: 0.0,
     stub_aspect: 0.0,
     free_loop_rel: 0.0,
     growth: 2.0,

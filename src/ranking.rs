@@ -164,6 +164,8 @@ pub struct Prepared {
     pub names: Vec<String>,
     /// Per channel (`None` when the signature lacks it).
     pub channels: Vec<Option<PreparedChannel>>,
+    /// The second cut version's histograms ([`Signature::alternate`]), if it has one.
+    pub alternate: Option<Box<Prepared>>,
 }
 
 /// One prepared channel.
@@ -199,6 +201,34 @@ pub struct QuerySpec {
     pub dissimilarity: Dissimilarity,
     /// Dissimilarity-stage aggregation over `channels` ([`Aggregation::Single`]: first only).
     pub aggregation: Aggregation,
+    /// How much closer a pair's second versions must be to count
+    /// ([`crate::signature::SignatureSpec::alternate_cut`]): a pair of which either shape has a
+    /// second version scores `min(D₁, f · D₂)`, `D₁` the aggregated dissimilarity of the first
+    /// versions, `D₂` that of the second ones (a shape without a second version takes part
+    /// with its first), `f` this margin (`≥ 1`, finite). Without second versions it changes
+    /// nothing. Missing from the JSON: [`DEFAULT_ALTERNATE_MARGIN`].
+    #[serde(default = "default_alternate_margin")]
+    pub alternate_margin: f64,
+}
+
+/// The default's [`QuerySpec::alternate_margin`]: chosen by the leave-one-class-out protocol
+/// (`docs/quality.md` §17).
+pub const DEFAULT_ALTERNATE_MARGIN: f64 = 1.1;
+
+fn default_alternate_margin() -> f64 {
+    DEFAULT_ALTERNATE_MARGIN
+}
+
+impl QuerySpec {
+    /// Why the spec's own values are invalid, if they are (the channels are checked against a
+    /// signature spec by whoever knows it): a margin below 1 or not finite.
+    pub fn validate(&self) -> Result<(), String> {
+        let f = self.alternate_margin;
+        if !(f.is_finite() && f >= 1.0) {
+            return Err(format!("alternate_margin must be finite and >= 1, got {f}"));
+        }
+        Ok(())
+    }
 }
 
 /// Options of [`calibrate_with`]. Missing fields deserialize to the paper's values.
@@ -472,7 +502,8 @@ pub fn histogram_from_mass(mass_bins: Vec<f64>, bin_width: f64) -> Histogram {
     }
 }
 
-/// Derives the histograms of `sig` under `cal` (channels matched by name).
+/// Derives the histograms of `sig` under `cal` (channels matched by name), its second version's
+/// too.
 pub fn prepare_for_ranking(sig: &Signature, cal: &Calibration) -> Prepared {
     let channels = cal
         .channel_names
@@ -491,6 +522,10 @@ pub fn prepare_for_ranking(sig: &Signature, cal: &Calibration) -> Prepared {
         epoch: cal.epoch,
         names: cal.channel_names.clone(),
         channels,
+        alternate: sig
+            .alternate
+            .as_deref()
+            .map(|a| Box::new(prepare_for_ranking(a, cal))),
     }
 }
 

@@ -117,6 +117,7 @@ fn aggregation_by_hand() {
             Some(PreparedChannel::Histogram(h(&[1.0, 0.0, 1.0, 2.0], 0.5))),
             Some(PreparedChannel::Histogram(h(&[1.0, 0.0, 0.0, 0.0], 1.0))),
         ],
+        alternate: None,
     };
     let q = Prepared {
         epoch: 1,
@@ -125,6 +126,7 @@ fn aggregation_by_hand() {
             Some(PreparedChannel::Histogram(h(&[0.0, 0.0, 2.0, 2.0], 0.5))),
             Some(PreparedChannel::Histogram(h(&[0.0, 0.0, 1.0, 0.0], 1.0))),
         ],
+        alternate: None,
     };
     // Scored on the corpus encoding (quantised to within 4·bins/T per channel).
     use crate::search::{Encoded, Layout, Query};
@@ -150,6 +152,7 @@ fn aggregation_by_hand() {
         channels: vec!["a".into(), "b".into()],
         dissimilarity: Dissimilarity::NL1,
         aggregation: a,
+        alternate_margin: crate::ranking::DEFAULT_ALTERNATE_MARGIN,
     };
     assert!(close(score(&p, &q, &spec(Aggregation::Single)), 0.5));
     assert!(close(score(&p, &q, &spec(Aggregation::Sum)), 2.5));
@@ -228,6 +231,7 @@ fn sig_with(name: &str, s: QuantileSketch) -> Signature {
         vertices: 0,
         area: 1.0,
         quadrature_points: 0,
+        alternate: None,
     }
 }
 

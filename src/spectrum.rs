@@ -125,6 +125,17 @@ pub fn analyze(mesh: &Mesh, opts: &AnalyzeOptions) -> crate::Result<Analysis> {
     let t0 = Instant::now();
     let (prepared, report) = prepare(mesh, &opts.prepare)?;
     let prepare_ms = t0.elapsed().as_secs_f64() * 1e3;
+    analyze_prepared(prepared, report, opts, prepare_ms)
+}
+
+/// The spectrum of a mesh already prepared with `opts.prepare` ([`prepare`]'s output and
+/// report, and the time it took): the second half of [`analyze`].
+pub fn analyze_prepared(
+    prepared: Mesh,
+    report: PrepareReport,
+    opts: &AnalyzeOptions,
+    prepare_ms: f64,
+) -> crate::Result<Analysis> {
     let (spectrum, eigen_stats, st) =
         compute_spectrum_with(&prepared, opts.laplacian, &opts.eigen)?;
     Ok(Analysis {

@@ -69,6 +69,7 @@ proptest! {
             vertices: 10,
             area,
             quadrature_points: 10,
+            alternate: None,
         };
         prop_assert_eq!(json_round_trip(&s), s);
     }

@@ -566,7 +566,12 @@ fn max_sig_diff(a: &shapeseek::signature::Signature, b: &shapeseek::signature::S
             _ => return f64::INFINITY,
         }
     }
-    m
+    // The second cut versions, when there are any.
+    match (&a.alternate, &b.alternate) {
+        (Some(x), Some(y)) => m.max(max_sig_diff(x, y)),
+        (None, None) => m,
+        _ => f64::INFINITY,
+    }
 }
 
 /// The server's ranking equals the library's (what `eval` does): `calibrate` over all stored
@@ -576,7 +581,7 @@ fn ranking_equals_library_ranking() {
     use shapeseek::presets::default_config;
     use shapeseek::ranking::{calibrate_with, QuerySpec};
     use shapeseek::search::{Corpus, Encoded, Layout, Query};
-    use shapeseek::signature::{compute_signature, Signature};
+    use shapeseek::signature::Signature;
 
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), |_| {});
@@ -591,13 +596,15 @@ fn ranking_equals_library_ranking() {
         .iter()
         .map(|(.., bytes)| {
             let mesh = shapeseek::mesh::read::read_mesh(bytes, None, &Default::default()).unwrap();
-            compute_signature(
-                &shapeseek::spectrum::analyze(&mesh, &opts).unwrap(),
-                &cfg.signature,
-            )
-            .unwrap()
+            shapeseek::signature::sign(&mesh, &cfg.signature, &opts)
+                .unwrap()
+                .1
         })
         .collect();
+    assert!(
+        sigs.iter().any(|s| s.alternate.is_some()),
+        "the corpus has a shape with a second cut version"
+    );
     // The served JSON agrees (up to JSON float parsing); the stored bytes are checked exactly
     // below, after the server stopped.
     for ((id, ..), local) in shapes.iter().zip(&sigs) {

@@ -649,3 +649,62 @@ fn stubs_of_a_cut_weld_are_removed_up_to_where_the_surface_opens() {
         assert!(o.validate().is_err(), "{bad}");
     }
 }
+
+/// The default's second cut ([`shapeseek::presets::DEFAULT_ALTERNATE_CUT`]) takes the genuine
+/// handles its first cut keeps, so every such shape is signed twice
+/// ([`shapeseek::signature::sign`]): the first version uncut (the mesh of the first rule's
+/// preparation), the second cut, smaller, with the same channels and spec key; a genus-0 shape
+/// and a cut weld have one version. Both survive the binary encoding.
+#[test]
+fn genuine_handles_get_a_second_version_cut_by_the_alternate_rule() {
+    use shapeseek::mesh::prepare::{prepare, PrepareOptions};
+    use shapeseek::presets::{DEFAULT_ALTERNATE_CUT, DEFAULT_HANDLE_CUT};
+    use shapeseek::signature::{sign, ChannelSpec, Norm, PairQuadrature, Signature, SignatureSpec};
+    use shapeseek::spectrum::AnalyzeOptions;
+    let mut spec = SignatureSpec::with_channels(vec![ChannelSpec::heat(0.04, Norm::L2)]);
+    spec.quadrature = PairQuadrature::Farthest {
+        samples: 150,
+        cell_means: false,
+        near_field: true,
+    };
+    spec.sketch_quantiles = 64;
+    spec.cut_handles = Some(DEFAULT_HANDLE_CUT);
+    spec.alternate_cut = Some(DEFAULT_ALTERNATE_CUT);
+    let mut base = AnalyzeOptions::default();
+    base.eigen.k = 20;
+    for (name, m, second) in [
+        ("mug", mug(0.15, 0.6, 1.8), true),
+        ("joined arms", mug(0.08, 0.6, 1.8), true),
+        ("thick ring", thick_ring(0.22, 0.4), true),
+        ("sphere", sphere(3), false),
+        ("welded C", welded_c(0.25, 0.06, 0.12, 360, 24), false),
+    ] {
+        let (first, sig) = sign(&m, &spec, &base).unwrap();
+        let cut_first = prepare(
+            &m,
+            &PrepareOptions {
+                cut_handles: Some(DEFAULT_HANDLE_CUT),
+                ..PrepareOptions::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(first.mesh, cut_first.0, "{name}: first version");
+        assert_eq!(sig.spec_key, spec.key());
+        assert_eq!(sig.alternate.is_some(), second, "{name}");
+        if let Some(alt) = &sig.alternate {
+            assert_eq!(alt.spec_key, sig.spec_key, "{name}");
+            assert_eq!(alt.alternate, None, "{name}");
+            assert_eq!(
+                alt.channels.iter().map(|c| &c.name).collect::<Vec<_>>(),
+                sig.channels.iter().map(|c| &c.name).collect::<Vec<_>>()
+            );
+            assert!(alt.channels != sig.channels, "{name}: same distributions");
+            assert!(alt.vertices < sig.vertices, "{name}: the band is removed");
+        }
+        assert_eq!(
+            Signature::from_bytes(&sig.to_bytes()).unwrap(),
+            sig,
+            "{name}"
+        );
+    }
+}

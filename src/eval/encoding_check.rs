@@ -204,7 +204,8 @@ pub struct ReferenceMatrices {
 
 impl ReferenceMatrices {
     /// The configuration's all-pairs reference matrix (row = query; NaN on the diagonal and for
-    /// shapes left out), aggregated over channels as [`Query::aggregate`].
+    /// shapes left out), aggregated over channels as [`Query::aggregate`], second cut versions
+    /// as [`Query::with_second`].
     pub fn aggregate(
         &mut self,
         prepared: &[Option<Prepared>],
@@ -234,7 +235,8 @@ impl ReferenceMatrices {
             .for_each(|(i, row)| {
                 for (j, x) in row.iter_mut().enumerate() {
                     if i != j && included[i] && included[j] {
-                        *x = q.aggregate(|c| mats[&(c, q.dissimilarity)][i * n + j]);
+                        let first = q.aggregate(|c| mats[&(c, q.dissimilarity)][i * n + j]);
+                        *x = reference_with_second(prepared, &q, i, j, first);
                     }
                 }
             });
@@ -270,7 +272,35 @@ pub fn reference_score(
     j: usize,
 ) -> f64 {
     let q = Query::new(spec, layout);
-    q.aggregate(|c| reference_channel(prepared, c, q.dissimilarity, i, j))
+    let first = q.aggregate(|c| reference_channel(prepared, c, q.dissimilarity, i, j));
+    reference_with_second(prepared, &q, i, j, first)
+}
+
+/// [`Query::with_second`] on the `f64` histograms: `min(first, f · D₂)` when either shape has
+/// a second cut version, `D₂` the aggregated dissimilarity of the second versions (a shape
+/// without one takes part with its first).
+fn reference_with_second(
+    prepared: &[Option<Prepared>],
+    q: &Query,
+    i: usize,
+    j: usize,
+    first: f64,
+) -> f64 {
+    match (&prepared[i], &prepared[j]) {
+        (Some(a), Some(b)) if a.alternate.is_some() || b.alternate.is_some() => {
+            let a2 = a.alternate.as_deref().unwrap_or(a);
+            let b2 = b.alternate.as_deref().unwrap_or(b);
+            let second = q.aggregate(|c| {
+                ranking::channel_dissimilarity(
+                    q.dissimilarity,
+                    a2.channels.get(c).and_then(|x| x.as_ref()),
+                    b2.channels.get(c).and_then(|x| x.as_ref()),
+                )
+            });
+            first.min(q.alternate_margin * second)
+        }
+        _ => first,
+    }
 }
 
 /// [`metrics::evaluate`] of a matrix after and before merging rounding ties:

@@ -849,8 +849,9 @@ fn per_class_subset(entries: Vec<manifest::Entry>, m: usize, seed: u64) -> Vec<m
 /// All-pairs per-channel dissimilarity matrices, computed once per (channel, dissimilarity)
 /// and shared by every configuration of a signature family: `Heat-L2-nL1-Single[t]`, `…-Sum`,
 /// `…-Sum2` and `…-Max` all reuse the same six matrices. A configuration's matrix is then
-/// [`Query::aggregate`] of the channels' values, which is how [`Query::score`] is computed:
-/// the same numbers as the server's scan, by construction.
+/// [`Query::aggregate`] of the channels' values and [`Query::with_second`] for pairs with a
+/// second cut version, which is how [`Query::score`] is computed: the same numbers as the
+/// server's scan, by construction.
 #[derive(Default)]
 struct ChannelMatrices {
     mats: HashMap<(usize, Dissimilarity), Vec<f64>>,
@@ -878,7 +879,8 @@ impl ChannelMatrices {
     /// The configuration's all-pairs matrix (row = query; NaN on the diagonal and for shapes
     /// left out).
     fn aggregate(&mut self, corpus: &Corpus, included: &[bool], spec: &QuerySpec) -> Vec<f64> {
-        let q = Query::new(spec, corpus.layout());
+        let l = corpus.layout();
+        let q = Query::new(spec, l);
         for &c in q.channels.iter().flatten() {
             self.matrix(corpus, included, c, q.dissimilarity);
         }
@@ -893,7 +895,8 @@ impl ChannelMatrices {
                 }
                 for (j, x) in row.iter_mut().enumerate() {
                     if i != j && included[j] {
-                        *x = q.aggregate(|c| mats[&(c, q.dissimilarity)][i * n + j]);
+                        let first = q.aggregate(|c| mats[&(c, q.dissimilarity)][i * n + j]);
+                        *x = q.with_second(l, corpus.shape(i), corpus.shape(j), first);
                     }
                 }
             });

@@ -1,6 +1,7 @@
 //! The per-shape phase of a run: reading, analysis and signatures, cached, with progress.
 
 use super::*;
+use crate::signature::versions::{alternate_analysis, attach_alternate};
 
 pub(super) fn dur(ns: &AtomicU64) -> f64 {
     ns.load(Ordering::Relaxed) as f64 * 1e-9
@@ -180,17 +181,25 @@ fn process_group(
     let t = Instant::now();
     let cached = cache.load_analysis(&akey);
     add(&clock.cache, t.elapsed());
+    let hint = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .and_then(Format::from_extension);
+    let mut mesh: Option<crate::mesh::Mesh> = None;
+    let read = |mesh: &mut Option<crate::mesh::Mesh>| -> std::result::Result<(), (String, String)> {
+        if mesh.is_none() {
+            let t = Instant::now();
+            *mesh = Some(read_mesh(bytes, hint, limits).map_err(fail)?);
+            add(&clock.read, t.elapsed());
+        }
+        Ok(())
+    };
     let analysis = match cached {
         Some(a) => a,
         None => {
-            let t = Instant::now();
-            let hint = path
-                .extension()
-                .and_then(|e| e.to_str())
-                .and_then(Format::from_extension);
-            let mesh = read_mesh(bytes, hint, limits).map_err(fail)?;
-            add(&clock.read, t.elapsed());
-            let a = analyze(&mesh, opts).map_err(fail)?;
+            read(&mut mesh)?;
+            let mesh = mesh.as_ref().expect("read");
+            let a = analyze(mesh, opts).map_err(fail)?;
             add(
                 &clock.prepare,
                 Duration::from_secs_f64(a.timings.prepare_ms * 1e-3),
@@ -214,8 +223,22 @@ fn process_group(
             Some(s) => out.push(s),
             None => {
                 let t = Instant::now();
-                let s = compute_signature(&analysis, spec).map_err(fail)?;
+                let mut s = compute_signature(&analysis, spec).map_err(fail)?;
                 add(&clock.signature, t.elapsed());
+                if spec.alternate_cut.is_some() {
+                    // The second cut version (crate::signature::versions), from the mesh.
+                    read(&mut mesh)?;
+                    let m = mesh.as_ref().expect("read");
+                    let t = Instant::now();
+                    if let Some(second) = alternate_analysis(m, &analysis, spec, opts) {
+                        add(&clock.eigen, t.elapsed());
+                        let t = Instant::now();
+                        attach_alternate(&mut s, &second, spec).map_err(fail)?;
+                        add(&clock.signature, t.elapsed());
+                    } else {
+                        add(&clock.prepare, t.elapsed());
+                    }
+                }
                 let t = Instant::now();
                 cache.store_signature(
                     &hash_parts(&[akey.as_bytes(), sk.as_bytes()]),

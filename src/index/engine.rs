@@ -7,7 +7,7 @@
 use crate::presets::{self, Config};
 use crate::ranking::{self, Calibration, QuerySpec};
 use crate::search::Stage;
-use crate::signature::{compute_signature, Signature};
+use crate::signature::Signature;
 use crate::spectrum::{Analysis, AnalyzeOptions};
 use crate::{Error, Result};
 
@@ -89,9 +89,11 @@ impl Engine {
         })
     }
 
-    /// Computes the signature of an analysed shape.
-    pub fn compute(&self, analysis: &Analysis) -> Result<Signature> {
-        compute_signature(analysis, &self.config.signature)
+    /// Analyses `mesh` and computes its signature with both cut versions
+    /// ([`crate::signature::sign`]): the one path of ingest, search by upload and the
+    /// recomputation of stale signatures. Returns the first version's analysis.
+    pub fn sign(&self, mesh: &crate::mesh::Mesh) -> Result<(Analysis, Signature)> {
+        crate::signature::sign(mesh, &self.config.signature, &self.analyze)
     }
 
     /// The spec key a signature was computed with (the record's spec key, checked at load,
@@ -159,6 +161,7 @@ impl Engine {
         if q.channels.is_empty() {
             return Err(Error::InvalidArgument("channels: at least one".into()));
         }
+        q.validate().map_err(Error::InvalidArgument)?;
         for c in &q.channels {
             if !known.contains(c) {
                 return Err(Error::InvalidArgument(format!(

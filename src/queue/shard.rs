@@ -203,6 +203,14 @@ impl W {
             self.len(v.len());
             v.iter().for_each(|&x| self.u64(x.to_bits()));
         }
+        // The second cut version: a flag, then its encoding (which has none).
+        match &e.alt {
+            Some(a) => {
+                self.u8(1);
+                self.encoded(a);
+            }
+            None => self.u8(0),
+        }
     }
 }
 
@@ -271,6 +279,21 @@ impl<'a> R<'a> {
                     .collect::<Result<_>>()?,
             );
         }
+        let alt = match self.u8()? {
+            0 => None,
+            1 => {
+                let a = self.encoded()?;
+                if a.alt.is_some() {
+                    return Err(Error::Queue("shard message: nested second version".into()));
+                }
+                Some(Box::new(a))
+            }
+            _ => {
+                return Err(Error::Queue(
+                    "shard message: bad second-version flag".into(),
+                ))
+            }
+        };
         Ok(Encoded {
             hist,
             shift,
@@ -278,6 +301,7 @@ impl<'a> R<'a> {
             mass,
             present,
             vectors,
+            alt,
         })
     }
 }
@@ -607,6 +631,7 @@ mod tests {
             mass: vec![0.5, f64::MIN_POSITIVE],
             present: vec![true, false, true],
             vectors: vec![vec![], vec![1.0, -2.5, f64::NAN]],
+            alt: None,
         }
     }
 
@@ -636,12 +661,18 @@ mod tests {
             fingerprint: 99,
             budget_ms: 1000,
         };
-        let q = enc(1);
+        let mut q = enc(1);
+        q.alt = Some(Box::new(enc(5))); // a second cut version travels with the query
         let (r2, q2) = decode_request(&encode_request(&req, &q)).unwrap();
         assert_eq!(r2.k, 200);
         assert_eq!(r2.exclude.as_deref(), Some("0000000000000001"));
         assert_eq!(q2.hist, q.hist);
         assert_eq!(q2.vectors[1][2].to_bits(), q.vectors[1][2].to_bits());
+        let alt = q2.alt.as_deref().expect("second version");
+        assert_eq!(
+            (alt.hist.as_slice(), alt.alt.is_none()),
+            (enc(5).hist.as_slice(), true)
+        );
         let hits: Vec<Candidate> = (0..400)
             .map(|i| Candidate {
                 score: i as f64 * 0.1,

@@ -18,7 +18,9 @@
 //!   level of the lower bounds of [`super::prune`], comparable across shapes without a shift.
 //!
 //! Vector channels (ShapeDNA) are kept as `f64` vectors; a channel a shape lacks is marked
-//! absent. 256 bins × 6 channels cost 3 072 bytes of counts, 192 bytes of group sums, 48 bytes
+//! absent. A shape with a second cut version ([`crate::signature::Signature::alternate`]) keeps
+//! it as a second [`Encoded`] beside its row, boxed (8 bytes per shape without one: the
+//! default gives one to the few shapes whose short loops its first cut leaves). 256 bins × 6 channels cost 3 072 bytes of counts, 192 bytes of group sums, 48 bytes
 //! of masses and 6 of exponents per shape: the three `f64` arrays per bin they replace cost
 //! 36 864.
 //!
@@ -212,6 +214,8 @@ pub struct Encoded {
     pub present: Vec<bool>,
     /// Per vector channel (empty when absent).
     pub vectors: Vec<Vec<f64>>,
+    /// The second cut version in the same layout (its own `alt` is `None`).
+    pub alt: Option<Box<Encoded>>,
 }
 
 /// A view of one shape, in the corpus or an [`Encoded`].
@@ -229,6 +233,19 @@ pub struct ShapeRef<'a> {
     pub present: &'a [bool],
     /// Vectors per vector channel.
     pub vectors: &'a [Vec<f64>],
+    /// The second cut version, if the shape has one.
+    pub alt: Option<&'a Encoded>,
+}
+
+impl<'a> ShapeRef<'a> {
+    /// The second version's view, or this one when there is none: the version a pair's
+    /// second comparison uses ([`super::score::Query::score`]).
+    pub fn second(self) -> ShapeRef<'a> {
+        match self.alt {
+            Some(e) => e.view(),
+            None => self,
+        }
+    }
 }
 
 impl Encoded {
@@ -241,11 +258,13 @@ impl Encoded {
             mass: vec![0.0; layout.histograms()],
             present: vec![false; layout.names.len()],
             vectors: vec![Vec::new(); layout.vectors()],
+            alt: None,
         }
     }
 
     /// Encodes prepared histograms (`p` must come from the layout's calibration; channels are
-    /// matched by name, a channel of the wrong kind or bin count is absent).
+    /// matched by name, a channel of the wrong kind or bin count is absent), its second version
+    /// too.
     pub fn from_prepared(p: &Prepared, layout: &Layout) -> Encoded {
         let mut e = Encoded::absent(layout);
         for (c, (name, slot)) in layout.names.iter().zip(&layout.slots).enumerate() {
@@ -270,12 +289,32 @@ impl Encoded {
             }
         }
         e.fill_groups(layout);
+        e.alt = p
+            .alternate
+            .as_deref()
+            .map(|a| Box::new(Encoded::from_prepared(a, layout)));
         e
     }
 
-    /// Prepares and encodes a signature under `cal` (whose layout is `layout`).
+    /// Prepares and encodes a signature under `cal` (whose layout is `layout`), its second
+    /// version too when it has one.
     pub fn from_signature(sig: &Signature, cal: &Calibration, layout: &Layout) -> Encoded {
         Encoded::from_prepared(&crate::ranking::prepare_for_ranking(sig, cal), layout)
+    }
+
+    /// Heap bytes held, the box of the second version included.
+    pub fn heap_bytes(&self) -> usize {
+        self.hist.capacity() * 2
+            + self.shift.capacity()
+            + self.groups.capacity() * 4
+            + self.mass.capacity() * 8
+            + self.present.capacity()
+            + self.vectors.capacity() * std::mem::size_of::<Vec<f64>>()
+            + self.vectors.iter().map(|v| v.capacity() * 8).sum::<usize>()
+            + self
+                .alt
+                .as_ref()
+                .map_or(0, |a| std::mem::size_of::<Encoded>() + a.heap_bytes())
     }
 
     /// Recomputes the group sums from the counts and exponents (after editing `hist`).
@@ -299,6 +338,7 @@ impl Encoded {
             mass: &self.mass,
             present: &self.present,
             vectors: &self.vectors,
+            alt: self.alt.as_deref(),
         }
     }
 }
@@ -314,6 +354,8 @@ pub struct Corpus {
     mass: Vec<f64>,
     present: Vec<bool>,
     vectors: Vec<Vec<f64>>,
+    /// Second versions, one entry per shape.
+    alts: Vec<Option<Box<Encoded>>>,
 }
 
 impl Corpus {
@@ -328,6 +370,7 @@ impl Corpus {
             mass: Vec::new(),
             present: Vec::new(),
             vectors: Vec::new(),
+            alts: Vec::new(),
         }
     }
 
@@ -341,6 +384,7 @@ impl Corpus {
         c.mass.reserve_exact(n * l.histograms());
         c.present.reserve_exact(n * l.names.len());
         c.vectors.reserve_exact(n * l.vectors());
+        c.alts.reserve_exact(n);
         c
     }
 
@@ -389,6 +433,7 @@ impl Corpus {
             mass: &self.mass[at * m..(at + 1) * m],
             present: &self.present[at * p..(at + 1) * p],
             vectors: &self.vectors[at * v..(at + 1) * v],
+            alt: self.alts[at].as_deref(),
         }
     }
 
@@ -402,7 +447,27 @@ impl Corpus {
             mass: s.mass.to_vec(),
             present: s.present.to_vec(),
             vectors: s.vectors.to_vec(),
+            alt: s.alt.map(|e| Box::new(e.clone())),
         }
+    }
+
+    /// Whether the shape at `at` has a second version.
+    pub fn has_alt(&self, at: usize) -> bool {
+        self.alts[at].is_some()
+    }
+
+    /// Positions `range` that have a second version (the corpus's few; read by the bounds of
+    /// [`super::prune`]).
+    pub(crate) fn alts_in(
+        &self,
+        range: std::ops::Range<usize>,
+    ) -> impl Iterator<Item = usize> + '_ {
+        let base = range.start;
+        self.alts[range]
+            .iter()
+            .enumerate()
+            .filter(|(_, a)| a.is_some())
+            .map(move |(j, _)| base + j)
     }
 
     /// In-window mass of histogram slot `k` of the shape at `at`.
@@ -423,9 +488,13 @@ impl Corpus {
                 && e.groups.len() == g
                 && e.mass.len() == m
                 && e.present.len() == p
-                && e.vectors.len() == v,
+                && e.vectors.len() == v
+                && e.alt.as_ref().is_none_or(|a| a.alt.is_none()),
             "encoded shape does not match the corpus layout"
         );
+        if let Some(a) = &e.alt {
+            self.check(a);
+        }
     }
 
     /// Appends a shape.
@@ -444,6 +513,7 @@ impl Corpus {
         splice(&mut self.mass, at * m, &e.mass);
         splice(&mut self.present, at * p, &e.present);
         splice(&mut self.vectors, at * v, &e.vectors);
+        self.alts.insert(at, e.alt.clone());
         self.len += 1;
     }
 
@@ -458,6 +528,7 @@ impl Corpus {
         self.mass[at * m..(at + 1) * m].copy_from_slice(&e.mass);
         self.present[at * p..(at + 1) * p].copy_from_slice(&e.present);
         self.vectors[at * v..(at + 1) * v].clone_from_slice(&e.vectors);
+        self.alts[at] = e.alt.clone();
     }
 
     /// Removes the shape at `at`.
@@ -470,6 +541,7 @@ impl Corpus {
         self.mass.drain(at * m..(at + 1) * m);
         self.present.drain(at * p..(at + 1) * p);
         self.vectors.drain(at * v..(at + 1) * v);
+        self.alts.remove(at);
         self.len -= 1;
     }
 
@@ -482,6 +554,13 @@ impl Corpus {
             + self.present.capacity()
             + self.vectors.capacity() * std::mem::size_of::<Vec<f64>>()
             + self.vectors.iter().map(|v| v.capacity() * 8).sum::<usize>()
+            + self.alts.capacity() * std::mem::size_of::<Option<Box<Encoded>>>()
+            + self
+                .alts
+                .iter()
+                .flatten()
+                .map(|a| a.heap_bytes())
+                .sum::<usize>()
     }
 }
 

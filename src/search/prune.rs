@@ -35,6 +35,13 @@
 //! bounds cannot use (a vector channel, a channel absent from the query or the candidate)
 //! contributes 0. Each bound is finally lowered by a relative 10⁻⁹ and an absolute 10⁻¹² so
 //! that rounding can never make it exceed the exact score.
+//!
+//! **Second cut versions** ([`Query::score`] = `min(D₁, f · D₂)` for a pair of which either
+//! shape has one): the bound is `min(B₁, f · B₂)`, `B₁` the first versions' bound and `B₂` that
+//! of the second pair — the query's second version (or its first) against the candidate's
+//! first version in the one pass over the group sums, or against the candidate's second version
+//! (its own group sums, read per candidate: the few shapes whose short loops the first cut
+//! leaves) for a candidate that has one.
 
 use super::corpus::{total_at, Corpus, ShapeRef, Slot, GROUP_BINS, MAX_SHIFT};
 use super::score::Query;
@@ -252,6 +259,8 @@ pub(crate) struct Bounder<'a> {
     /// group sums over the whole row and the ranges of the row that are compared, so that the
     /// bound is one integer loop per range, `Σ_j |q_j − c_j| / T_max`.
     nl1_row: Option<(Vec<u32>, Vec<std::ops::Range<usize>>)>,
+    /// The bounds of the query's second version, if it has one.
+    second: Option<Box<Bounder<'a>>>,
 }
 
 impl<'a> Bounder<'a> {
@@ -311,12 +320,49 @@ impl<'a> Bounder<'a> {
             channels,
             stride,
             nl1_row,
+            second: query
+                .alt
+                .map(|e| Box::new(Bounder::new(corpus, q, e.view()))),
         }
     }
 
     /// Writes the bound of every position `base + j` into `out[j]`, or NaN where `keep`
-    /// rejects the position.
+    /// rejects the position (second versions: module docs).
     pub(crate) fn fill(&self, base: usize, out: &mut [f64], keep: &(dyn Fn(usize) -> bool + Sync)) {
+        self.fill_first(base, out, keep);
+        let f = self.q.alternate_margin;
+        // A candidate with a second version: its second pair is (the query's second version, or
+        // its first, against the candidate's second), bounded from the candidate's own group
+        // sums; kept with its first pair's bound before the query's second version is applied.
+        let query_second = self.second.as_deref().unwrap_or(self);
+        let with_alt: Vec<(usize, f64)> = self
+            .corpus
+            .alts_in(base..base + out.len())
+            .filter(|&i| !out[i - base].is_nan())
+            .map(|i| {
+                let alt = self
+                    .corpus
+                    .shape(i)
+                    .alt
+                    .expect("listed with a second version");
+                let second = query_second.bound_against(alt.view());
+                (i, out[i - base].min(f * second))
+            })
+            .collect();
+        if let Some(second) = &self.second {
+            let mut other = vec![0.0; out.len()];
+            second.fill_first(base, &mut other, keep);
+            for (o, b) in out.iter_mut().zip(other) {
+                *o = o.min(f * b); // NaN (not kept) stays NaN
+            }
+        }
+        for (i, b) in with_alt {
+            out[i - base] = b;
+        }
+    }
+
+    /// [`Bounder::fill`] of this version of the query against the candidates' first versions.
+    fn fill_first(&self, base: usize, out: &mut [f64], keep: &(dyn Fn(usize) -> bool + Sync)) {
         match &self.nl1_row {
             Some((qrow, ranges)) => {
                 let rows =
@@ -332,7 +378,7 @@ impl<'a> Bounder<'a> {
             None => {
                 for (j, o) in out.iter_mut().enumerate() {
                     *o = if keep(base + j) {
-                        self.bound(base + j)
+                        self.first_bound(base + j)
                     } else {
                         f64::NAN
                     };
@@ -341,12 +387,25 @@ impl<'a> Bounder<'a> {
         }
     }
 
-    /// A lower bound of the exact score of candidate `i`. A candidate lacking a compared
-    /// channel scores ∞, so its (zero) group sums may enter the bound: no presence check.
-    pub(crate) fn bound(&self, i: usize) -> f64 {
+    /// A lower bound of the first versions' score `D₁` of candidate `i`. A candidate lacking a
+    /// compared channel scores ∞, so its (zero) group sums may enter the bound: no presence
+    /// check.
+    fn first_bound(&self, i: usize) -> f64 {
+        let row = &self.corpus.all_groups()[i * self.stride..(i + 1) * self.stride];
+        self.bound_of(row, |k| self.corpus.mass_of(i, k))
+    }
+
+    /// A lower bound of the score of this version of the query against the shape version `c`
+    /// (a candidate's second version), from `c`'s own group sums.
+    fn bound_against(&self, c: ShapeRef<'_>) -> f64 {
+        self.bound_of(c.groups, |k| c.mass[k])
+    }
+
+    /// The bound against a shape whose group sums are `row` (`[histogram channel][group]`) and
+    /// whose in-window mass of histogram slot `k` is `mass(k)`.
+    fn bound_of(&self, row: &[u32], mass: impl Fn(usize) -> f64) -> f64 {
         let l = self.corpus.layout();
         let gs = l.groups;
-        let row = &self.corpus.all_groups()[i * self.stride..(i + 1) * self.stride];
         let d = self.q.dissimilarity;
         let b = self
             .q
@@ -364,15 +423,8 @@ impl<'a> Bounder<'a> {
                             .sum();
                         s as f64 / total_at(MAX_SHIFT)
                     } else {
-                        let v = channel_bound(
-                            d,
-                            &qc.groups,
-                            qc.mass,
-                            g,
-                            self.corpus.mass_of(i, qc.slot),
-                            qc.h,
-                            l.bins,
-                        );
+                        let v =
+                            channel_bound(d, &qc.groups, qc.mass, g, mass(qc.slot), qc.h, l.bins);
                         if v.is_nan() {
                             0.0
                         } else {

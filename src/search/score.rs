@@ -49,6 +49,8 @@ pub struct Query {
     pub aggregation: Aggregation,
     /// Compared channels (layout index; `None`: not in the layout, scores ∞).
     pub channels: Vec<Option<usize>>,
+    /// Factor on the second versions' score ([`QuerySpec::alternate_margin`]).
+    pub alternate_margin: f64,
 }
 
 impl Query {
@@ -61,12 +63,37 @@ impl Query {
                 .iter()
                 .map(|n| layout.channel(n))
                 .collect(),
+            alternate_margin: spec.alternate_margin,
         }
     }
 
-    /// Aggregated dissimilarity of `a` and `b` (∞ when a compared channel is missing from
-    /// either, or when nothing is compared).
+    /// The score of `a` and `b`: their first versions' aggregated dissimilarity `D₁`
+    /// ([`Query::score_versions`]); when either has a second cut version
+    /// ([`crate::signature::SignatureSpec::alternate_cut`]), `min(D₁, f · D₂)` with `D₂` the
+    /// dissimilarity of their second versions (a shape without one takes part with its first)
+    /// and `f` the margin ([`QuerySpec::alternate_margin`]) — `docs/quality.md` §16–§17.
     pub fn score(&self, layout: &Layout, a: ShapeRef<'_>, b: ShapeRef<'_>) -> f64 {
+        self.with_second(layout, a, b, self.score_versions(layout, a, b))
+    }
+
+    /// [`Query::score`] given the first versions' dissimilarity `first` (eval aggregates it
+    /// from its per-channel matrices).
+    pub fn with_second(
+        &self,
+        layout: &Layout,
+        a: ShapeRef<'_>,
+        b: ShapeRef<'_>,
+        first: f64,
+    ) -> f64 {
+        if a.alt.is_none() && b.alt.is_none() {
+            return first;
+        }
+        first.min(self.alternate_margin * self.score_versions(layout, a.second(), b.second()))
+    }
+
+    /// Aggregated dissimilarity of the two versions given (∞ when a compared channel is
+    /// missing from either, or when nothing is compared); second versions are not looked at.
+    pub fn score_versions(&self, layout: &Layout, a: ShapeRef<'_>, b: ShapeRef<'_>) -> f64 {
         self.aggregate(|c| channel_dissimilarity(layout, self.dissimilarity, c, a, b))
     }
 

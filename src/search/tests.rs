@@ -33,6 +33,7 @@ fn prepared(names: &[&str], channels: Vec<Option<PreparedChannel>>) -> Prepared 
         epoch: 1,
         names: names.iter().map(|s| s.to_string()).collect(),
         channels,
+        alternate: None,
     }
 }
 
@@ -41,6 +42,7 @@ fn spec(channels: &[&str], d: Dissimilarity, a: Aggregation) -> QuerySpec {
         channels: channels.iter().map(|s| s.to_string()).collect(),
         dissimilarity: d,
         aggregation: a,
+        alternate_margin: crate::ranking::DEFAULT_ALTERNATE_MARGIN,
     }
 }
 
@@ -146,10 +148,13 @@ proptest! {
     }
 
     /// The pruned top-k equals the head of the full ranking filtered by `keep`, bit for bit,
-    /// with ties (duplicated shapes), filters, and every dissimilarity and aggregation.
+    /// with ties (duplicated shapes), filters, every dissimilarity and aggregation, and second
+    /// cut versions on the query, on candidates, or on both.
     #[test]
     fn top_k_equals_full_ranking(
         base in prop::collection::vec((masses(70), masses(70)), 1..12),
+        alts in prop::collection::vec(0usize..24, 12),
+        margin in 1.0f64..1.5,
         picks in prop::collection::vec(0usize..1000, 1..80),
         drop in prop::collection::vec(any::<bool>(), 80),
         k in 1usize..30,
@@ -171,10 +176,25 @@ proptest! {
                 ), &l)
             })
             .collect();
+        // Half of the shapes get another shape's first version as their second one.
+        let shapes: Vec<Encoded> = shapes
+            .iter()
+            .enumerate()
+            .map(|(i, e)| {
+                let mut e = e.clone();
+                if alts[i] < shapes.len() && alts[i] != i {
+                    e.alt = Some(Box::new(shapes[alts[i]].clone()));
+                }
+                e
+            })
+            .collect();
         let rows: Vec<Encoded> = picks.iter().map(|&i| shapes[i % shapes.len()].clone()).collect();
         let corpus = Corpus::build(l, &rows);
         let q = Query::new(
-            &spec(&["t2", "t1"], Dissimilarity::all()[d], AGGREGATIONS[agg]),
+            &QuerySpec {
+                alternate_margin: margin,
+                ..spec(&["t2", "t1"], Dissimilarity::all()[d], AGGREGATIONS[agg])
+            },
             corpus.layout(),
         );
         let query = &shapes[query % shapes.len()];
@@ -257,6 +277,53 @@ fn unbounded_candidates_are_ranked_exactly() {
     }
 }
 
+/// A pair scores the smaller of its first versions' dissimilarity and the margin times its
+/// second versions' (a shape without a second version takes part with its first); without
+/// second versions on either side the score is the first versions'.
+#[test]
+fn second_versions_score_the_smaller_comparison() {
+    let l = layout(&["a"], 8, 0.8);
+    let e = |m: &[f64]| {
+        Encoded::from_prepared(
+            &prepared(&["a"], vec![Some(PreparedChannel::Histogram(hist(m, 0.1)))]),
+            &l,
+        )
+    };
+    let far = e(&[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+    let near = e(&[0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
+    let target = e(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
+    let with_alt = |first: &Encoded, second: &Encoded| {
+        let mut x = first.clone();
+        x.alt = Some(Box::new(second.clone()));
+        x
+    };
+    for f in [1.0, 1.1, 3.0] {
+        let q = Query::new(
+            &QuerySpec {
+                alternate_margin: f,
+                ..spec(&["a"], Dissimilarity::NL1, Aggregation::Single)
+            },
+            &l,
+        );
+        let d = |a: &Encoded, b: &Encoded| q.score_versions(&l, a.view(), b.view());
+        let (d_far, d_near) = (d(&far, &target), d(&near, &target));
+        assert!(d_near < d_far && d_far == 2.0, "{d_near} {d_far}");
+        // No second version: the first versions' score.
+        assert_eq!(q.score(&l, far.view(), target.view()), d_far);
+        // A second version on either side (the other side takes part with its first).
+        let x = with_alt(&far, &near);
+        let expected = d_far.min(f * d_near);
+        assert_eq!(q.score(&l, x.view(), target.view()), expected);
+        assert_eq!(q.score(&l, target.view(), x.view()), expected);
+        // On both sides: the second versions are compared with each other.
+        let y = with_alt(&target, &near);
+        assert_eq!(q.score(&l, x.view(), y.view()), d_far.min(0.0));
+        // A second version farther away changes nothing.
+        let z = with_alt(&near, &far);
+        assert_eq!(q.score(&l, z.view(), target.view()), d_near);
+    }
+}
+
 /// Inserting, replacing and removing keep the corpus equal to one built from scratch.
 #[test]
 fn edits_match_a_rebuilt_corpus() {
@@ -281,8 +348,12 @@ fn edits_match_a_rebuilt_corpus() {
         arr.insert(at, p(s));
         c.insert(at, &p(s));
     }
-    arr[2] = p(1.1);
-    c.replace(2, &p(1.1));
+    let mut with_alt = p(1.1);
+    with_alt.alt = Some(Box::new(p(1.3)));
+    arr[2] = with_alt.clone();
+    c.replace(2, &with_alt);
+    arr.insert(1, with_alt.clone());
+    c.insert(1, &with_alt);
     arr.remove(0);
     c.remove(0);
     let rebuilt = Corpus::build(l, &arr);

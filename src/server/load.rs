@@ -16,7 +16,6 @@ use crate::ranking::Calibration;
 use crate::rerank::{compute_payload, PayloadSpec};
 use crate::search::corpus::{Encoded, Layout};
 use crate::signature::Signature;
-use crate::spectrum::analyze;
 use crate::storage::{CalibrationLock, ShapeStore};
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, RwLock};
@@ -222,8 +221,7 @@ impl App {
         };
         let hint = Format::from_extension(&rec.format);
         let mesh = read_mesh(&orig, hint, &ReadLimits::unlimited())?;
-        let analysis = analyze(&mesh, &self.engine.analyze_options())?;
-        let sig = self.engine.compute(&analysis)?;
+        let (analysis, sig) = self.engine.sign(&mesh)?;
         rec.spec_key = self.engine.spec_key();
         // The payload depends on the same analysis (eigenpairs): refresh it too.
         let payload = compute_payload(&analysis, &PayloadSpec::default())?.to_bytes();

@@ -128,6 +128,7 @@ mod tests {
             vertices: tag,
             area: 1.0,
             quadrature_points: 0,
+            alternate: None,
         }
     }
 

@@ -682,6 +682,7 @@ mod tests {
             channels: vec!["a".into()],
             dissimilarity: Dissimilarity::L1,
             aggregation: Aggregation::Single,
+            alternate_margin: crate::ranking::DEFAULT_ALTERNATE_MARGIN,
         };
         let q = Query::new(&spec, &layout);
         for count in [1u32, 2, 3, 7] {

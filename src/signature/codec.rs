@@ -1,5 +1,7 @@
 //! The binary encoding of a [`Signature`] (`SSG1`, little endian, exact `f64`): what the index
-//! stores and the eval cache keeps.
+//! stores and the eval cache keeps. A second version ([`Signature::alternate`]) follows the
+//! channels as the byte `A` and its own length-prefixed encoding; a signature without one ends
+//! after its channels, as every signature stored before there were second versions does.
 
 use super::compute::{ChannelData, ChannelValues, Signature};
 use super::distributions::QuantileSketch;
@@ -31,6 +33,12 @@ impl Signature {
                     put_f64_array(&mut w, v);
                 }
             }
+        }
+        if let Some(a) = &self.alternate {
+            let inner = a.to_bytes();
+            w.push(b'A');
+            put_u64(&mut w, inner.len() as u64);
+            w.extend_from_slice(&inner);
         }
         w
     }
@@ -65,8 +73,20 @@ impl Signature {
             };
             channels.push(ChannelData { name, values });
         }
+        let mut alternate = None;
         if !r.0.at_end() {
-            return Err(Error::corrupt("signature", None, "trailing bytes"));
+            if r.take(1)? != b"A" {
+                return Err(Error::corrupt("signature", None, "trailing bytes"));
+            }
+            let n = r.u64()? as usize;
+            let inner = Signature::from_bytes(r.take(n)?)?;
+            if inner.alternate.is_some() {
+                return Err(Error::corrupt("signature", None, "nested second version"));
+            }
+            alternate = Some(Box::new(inner));
+            if !r.0.at_end() {
+                return Err(Error::corrupt("signature", None, "trailing bytes"));
+            }
         }
         Ok(Signature {
             spec_key,
@@ -74,6 +94,7 @@ impl Signature {
             vertices,
             area,
             quadrature_points,
+            alternate,
         })
     }
 

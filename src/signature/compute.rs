@@ -45,6 +45,11 @@ pub struct Signature {
     pub area: f64,
     /// Number of pair-quadrature points actually used for L2 channels.
     pub quadrature_points: usize,
+    /// The second version ([`SignatureSpec::alternate_cut`]): the same channels computed on the
+    /// shape cut by the alternate rule, present only when that cut leaves another mesh than the
+    /// first ([`super::versions::sign`]). Omitted from the JSON when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alternate: Option<Box<Signature>>,
 }
 
 /// Computes the signature of an analysed shape (see the module docs for the method).
@@ -286,6 +291,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
         vertices: n,
         area,
         quadrature_points: ctx.l2_quad.as_ref().map_or(0, |q| q.len()),
+        alternate: None,
     })
 }
 

@@ -17,7 +17,9 @@
 //! * [`scale_invariant`]: the scale-invariant kernel of eq. 21 and its distances;
 //! * [`baselines`]: geodesic distances, Osada's D2 (ShapeDNA is a plain eigenvalue vector);
 //! * [`compute`]: [`compute_signature`] and the [`Signature`] value;
-//! * [`codec`]: the binary encoding of a [`Signature`].
+//! * [`codec`]: the binary encoding of a [`Signature`];
+//! * [`versions`]: the two cut versions of a shape ([`SignatureSpec::alternate_cut`]) and
+//!   [`sign`], mesh to signature with both.
 //!
 //! # Distances
 //!
@@ -87,6 +89,7 @@ pub mod kernels;
 pub mod sampling;
 pub mod scale_invariant;
 pub mod spec;
+pub mod versions;
 
 /// Re-exported from [`crate::spectrum`], where zero modes are defined.
 pub use crate::spectrum::ZERO_MODE_TOLERANCE;
@@ -98,6 +101,7 @@ pub use spec::{
     Aggregation, ChannelKind, ChannelSpec, Kernel, Norm, PairQuadrature, SignatureSpec,
     DEFAULT_HEAT_SCALES, SMALL_HEAT_SCALES,
 };
+pub use versions::sign;
 
 #[cfg(test)]
 mod tests;

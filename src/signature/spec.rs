@@ -396,6 +396,18 @@ pub struct SignatureSpec {
     /// itself reads the analysis it is given. Omitted from the JSON (and key) when `None`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cut_handles: Option<HandleCutOptions>,
+    /// A second handle cut (`docs/quality.md` §16–§17): every shape whose mesh this cut leaves
+    /// different from [`SignatureSpec::cut_handles`]'s also gets the same channels computed on
+    /// that second version ([`Signature::alternate`](crate::signature::Signature::alternate)),
+    /// and the first stage scores a pair by the smaller of its two versions' dissimilarities
+    /// (the second multiplied by
+    /// [`QuerySpec::alternate_margin`](crate::ranking::QuerySpec::alternate_margin),
+    /// [`crate::search::Query::score`]). The default cuts every short loop here, genuine handles
+    /// included, while its first cut keeps those that look genuine: a weld the first rule must
+    /// leave is compared cut, a genuine handle keeps its uncut comparison. Omitted from the
+    /// JSON (and key) when `None`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alternate_cut: Option<HandleCutOptions>,
 }
 
 impl Default for SignatureSpec {
@@ -412,6 +424,7 @@ impl Default for SignatureSpec {
             sketch_quantiles: 1024,
             spectrum_scaling: SpectrumScaling::None,
             cut_handles: None,
+            alternate_cut: None,
         }
     }
 }
@@ -443,6 +456,15 @@ impl SignatureSpec {
             o.prepare.cut_handles = Some(c.clone());
         }
         o
+    }
+
+    /// The analysis options of the second version ([`SignatureSpec::alternate_cut`]): `base`
+    /// with the alternate cut in place of the first; `None` without an alternate cut.
+    pub fn alternate_analysis_options(&self, base: &AnalyzeOptions) -> Option<AnalyzeOptions> {
+        let c = self.alternate_cut.as_ref()?;
+        let mut o = base.clone();
+        o.prepare.cut_handles = Some(c.clone());
+        Some(o)
     }
 
     /// Channel names, in order.
@@ -481,6 +503,19 @@ pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
     }
     if spec.lp_samples == 0 || spec.geodesic_sources == 0 {
         return bad("lp_samples and geodesic_sources must be ≥ 1".into());
+    }
+    for (what, c) in [
+        ("cut_handles", &spec.cut_handles),
+        ("alternate_cut", &spec.alternate_cut),
+    ] {
+        if let Some(c) = c {
+            if !c.remove_band {
+                return bad(format!("{what}.remove_band must be true in a spec"));
+            }
+            if let Err(e) = c.validate() {
+                return bad(format!("{what}: {e}"));
+            }
+        }
     }
     let check_t = |t: f64| t.is_finite() && t > 0.0;
     match spec.spectrum_scaling {

@@ -1,0 +1,76 @@
+//! The two cut versions of a shape ([`SignatureSpec::alternate_cut`], `docs/quality.md` §16–§17).
+//!
+//! A spec with an alternate cut describes each shape by up to two versions: the mesh prepared
+//! with [`SignatureSpec::cut_handles`] (the first, always there) and the mesh prepared with the
+//! alternate cut, kept only when it differs from the first (the alternate rule cut a loop the
+//! first left, or the other way round). The alternate preparation is cheap (the cutter runs in
+//! milliseconds on a genus-0 shape, which it leaves as it is); a second spectrum and signature
+//! are computed only for the shapes that differ (18 of the 280 shapes of bench/dev with the
+//! default's rules).
+//!
+//! [`sign`] is the one path from a mesh to its signature used by the server (ingest, search by
+//! upload, recomputation of stale signatures); eval, which caches the first analysis, calls
+//! [`alternate`] with it.
+
+use super::compute::{compute_signature, Signature};
+use super::spec::SignatureSpec;
+use crate::mesh::prepare::prepare;
+use crate::mesh::Mesh;
+use crate::spectrum::{analyze, analyze_prepared, Analysis, AnalyzeOptions};
+use crate::Result;
+use std::time::Instant;
+
+/// The analysis of the second version of `mesh`, whose first version is `first` (analysed with
+/// `spec.analysis_options(base)`): `None` when the spec has no alternate cut or the alternate
+/// preparation leaves the same mesh as the first, or fails (the shape then has one version,
+/// as under a spec without an alternate cut; the first version's own errors are the ones
+/// reported).
+pub fn alternate_analysis(
+    mesh: &Mesh,
+    first: &Analysis,
+    spec: &SignatureSpec,
+    base: &AnalyzeOptions,
+) -> Option<Analysis> {
+    let opts = spec.alternate_analysis_options(base)?;
+    let t0 = Instant::now();
+    let (prepared, report) = prepare(mesh, &opts.prepare).ok()?;
+    if prepared.vertices == first.mesh.vertices && prepared.faces == first.mesh.faces {
+        return None;
+    }
+    let ms = t0.elapsed().as_secs_f64() * 1e3;
+    analyze_prepared(prepared, report, &opts, ms).ok()
+}
+
+/// Attaches the second version to `sig` (the first version's signature under `spec`): its
+/// channels computed with the same spec on `second`, the alternate analysis of
+/// [`alternate_analysis`] ([`compute_signature`] reads only the channels and the
+/// discretisation of the spec, so both versions carry the same spec key).
+pub fn attach_alternate(
+    sig: &mut Signature,
+    second: &Analysis,
+    spec: &SignatureSpec,
+) -> Result<()> {
+    sig.alternate = Some(Box::new(compute_signature(second, spec)?));
+    Ok(())
+}
+
+/// The first version's analysis of `mesh` and its signature under `spec`, with the second
+/// version attached when the spec has an alternate cut and it differs
+/// ([`alternate_analysis`]); `base` holds the preparation and eigensolver options, to which the
+/// spec's cuts are applied.
+///
+/// # Errors
+/// Those of [`analyze`] and [`compute_signature`] on the first version, and of
+/// [`compute_signature`] on the second.
+pub fn sign(
+    mesh: &Mesh,
+    spec: &SignatureSpec,
+    base: &AnalyzeOptions,
+) -> Result<(Analysis, Signature)> {
+    let first = analyze(mesh, &spec.analysis_options(base))?;
+    let mut sig = compute_signature(&first, spec)?;
+    if let Some(second) = alternate_analysis(mesh, &first, spec, base) {
+        attach_alternate(&mut sig, &second, spec)?;
+    }
+    Ok((first, sig))
+}
