@@ -575,7 +575,7 @@ fn rss_bytes() -> f64 {
 }
 
 /// Copy `c ≥ 1` of an encoded row: up to four counts moved by one unit to the next bin of
-/// the same channel (positions from `i`), group sums recomputed.
+/// the same channel (positions from `i`), group sums recomputed; its second version likewise.
 fn perturbed(e: &Encoded, layout: &Layout, i: usize) -> Encoded {
     let mut e = e.clone();
     let bins = layout.bins;
@@ -590,6 +590,8 @@ fn perturbed(e: &Encoded, layout: &Layout, i: usize) -> Encoded {
         }
     }
     e.fill_groups(layout);
+    // The second version, moved the same way (copies do not share one exactly).
+    e.alt = e.alt.map(|a| Box::new(perturbed(&a, layout, i)));
     e
 }
 

@@ -412,16 +412,9 @@ pub const DEFAULT_HANDLE_CUT: HandleCutOptions = HandleCutOptions {
 /// neither aspect test takes) is compared cut, while a genuine handle keeps its uncut
 /// comparison. Chosen by the leave-one-class-out protocol (`docs/quality.md` §16–§17).
 pub const DEFAULT_ALTERNATE_CUT: HandleCutOptions = HandleCutOptions {
-    max_loop_rel: 0.5,
     max_neck_aspect: 1e9,
     max_side_aspect: 0.0,
-    stub_aspect: 0.0,
-    free_loop_rel: 0.0,
-    growth: 2.0,
-    roots: 8,
-    refine_roots: 3,
-    max_cuts: 16,
-    remove_band: true,
+    ..DEFAULT_HANDLE_CUT
 };
 
 /// The configuration called `name` in [`paper_configs`].

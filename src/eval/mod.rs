@@ -290,6 +290,9 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         c.calibration.validate().map_err(|e| {
             Error::InvalidArgument(format!("configuration {}: calibration: {e}", c.name))
         })?;
+        c.query
+            .validate()
+            .map_err(|e| Error::InvalidArgument(format!("configuration {}: query: {e}", c.name)))?;
     }
     let (specs, group_of) = union_specs(&configs);
     // One calibration (and corpus) per signature group and calibration options.

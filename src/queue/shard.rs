@@ -416,25 +416,24 @@ pub fn decode_reply(b: &[u8]) -> Result<Reply> {
     })
 }
 
+/// About the bytes of `e` on the wire, its second version's included.
+fn encoded_size(e: &Encoded) -> usize {
+    2 * e.hist.len()
+        + 4 * e.groups.len()
+        + 9 * e.mass.len()
+        + e.present.len()
+        + e.vectors.iter().map(|v| 8 * v.len() + 4).sum::<usize>()
+        + 1
+        + e.alt.as_deref().map_or(0, |a| 24 + encoded_size(a))
+}
+
 /// A shard's ranked candidates as reply messages of at most about [`MAX_CHUNK_BYTES`] each
 /// (at least one message, the last flagged).
 pub fn answer_messages(shard: u32, matched: u64, hits: Vec<Candidate>) -> Vec<Vec<u8>> {
     let mut out = Vec::new();
     let mut chunk: Vec<Candidate> = Vec::new();
     let mut bytes = 0usize;
-    let size = |c: &Candidate| {
-        40 + c.id.len()
-            + c.name.len()
-            + 2 * c.encoded.hist.len()
-            + 4 * c.encoded.groups.len()
-            + 9 * c.encoded.mass.len()
-            + c.encoded.present.len()
-            + c.encoded
-                .vectors
-                .iter()
-                .map(|v| 8 * v.len() + 4)
-                .sum::<usize>()
-    };
+    let size = |c: &Candidate| 40 + c.id.len() + c.name.len() + encoded_size(&c.encoded);
     let n = hits.len();
     for (i, h) in hits.into_iter().enumerate() {
         bytes += size(&h);
@@ -680,6 +679,14 @@ mod tests {
                 name: format!("m{i}.obj"),
                 encoded: Encoded {
                     hist: vec![i as u16; 1536],
+                    // Every other candidate with a second version, as large as its first: the
+                    // chunks must count it.
+                    alt: (i % 2 == 0).then(|| {
+                        Box::new(Encoded {
+                            hist: vec![7; 1536],
+                            ..enc(i as u16)
+                        })
+                    }),
                     ..enc(i as u16)
                 },
             })

@@ -124,6 +124,20 @@ impl Layout {
     pub fn group_width(&self, g: usize) -> usize {
         GROUP_BINS.min(self.bins - g * GROUP_BINS)
     }
+
+    /// True when `e` has this layout's array lengths, and so has its second version, which has
+    /// none of its own: what [`Corpus`] and the scoring and bounds index by.
+    pub fn fits(&self, e: &Encoded) -> bool {
+        e.hist.len() == self.histograms() * self.bins
+            && e.shift.len() == self.histograms()
+            && e.groups.len() == self.histograms() * self.groups
+            && e.mass.len() == self.histograms()
+            && e.present.len() == self.names.len()
+            && e.vectors.len() == self.vectors()
+            && e.alt
+                .as_deref()
+                .is_none_or(|a| a.alt.is_none() && self.fits(a))
+    }
 }
 
 /// Quantises `prob` (non-negative; normalised here) to counts summing to `TOTAL · 2^s` and
@@ -304,17 +318,17 @@ impl Encoded {
 
     /// Heap bytes held, the box of the second version included.
     pub fn heap_bytes(&self) -> usize {
-        self.hist.capacity() * 2
-            + self.shift.capacity()
-            + self.groups.capacity() * 4
-            + self.mass.capacity() * 8
-            + self.present.capacity()
-            + self.vectors.capacity() * std::mem::size_of::<Vec<f64>>()
-            + self.vectors.iter().map(|v| v.capacity() * 8).sum::<usize>()
-            + self
-                .alt
-                .as_ref()
-                .map_or(0, |a| std::mem::size_of::<Encoded>() + a.heap_bytes())
+        arrays_bytes(
+            &self.hist,
+            &self.shift,
+            &self.groups,
+            &self.mass,
+            &self.present,
+            &self.vectors,
+        ) + self
+            .alt
+            .as_ref()
+            .map_or(0, |a| std::mem::size_of::<Encoded>() + a.heap_bytes())
     }
 
     /// Recomputes the group sums from the counts and exponents (after editing `hist`).
@@ -481,20 +495,10 @@ impl Corpus {
     }
 
     fn check(&self, e: &Encoded) {
-        let [h, g, m, p, v] = self.strides();
         assert!(
-            e.hist.len() == h
-                && e.shift.len() == m
-                && e.groups.len() == g
-                && e.mass.len() == m
-                && e.present.len() == p
-                && e.vectors.len() == v
-                && e.alt.as_ref().is_none_or(|a| a.alt.is_none()),
+            self.layout.fits(e),
             "encoded shape does not match the corpus layout"
         );
-        if let Some(a) = &e.alt {
-            self.check(a);
-        }
     }
 
     /// Appends a shape.
@@ -547,14 +551,14 @@ impl Corpus {
 
     /// Heap bytes held (capacity of the arrays, vectors' contents included).
     pub fn heap_bytes(&self) -> usize {
-        self.hist.capacity() * 2
-            + self.shift.capacity()
-            + self.groups.capacity() * 4
-            + self.mass.capacity() * 8
-            + self.present.capacity()
-            + self.vectors.capacity() * std::mem::size_of::<Vec<f64>>()
-            + self.vectors.iter().map(|v| v.capacity() * 8).sum::<usize>()
-            + self.alts.capacity() * std::mem::size_of::<Option<Box<Encoded>>>()
+        arrays_bytes(
+            &self.hist,
+            &self.shift,
+            &self.groups,
+            &self.mass,
+            &self.present,
+            &self.vectors,
+        ) + self.alts.capacity() * std::mem::size_of::<Option<Box<Encoded>>>()
             + self
                 .alts
                 .iter()
@@ -562,6 +566,25 @@ impl Corpus {
                 .map(|a| a.heap_bytes())
                 .sum::<usize>()
     }
+}
+
+/// Heap bytes of the six arrays of an [`Encoded`] or a [`Corpus`] (capacities, vectors'
+/// contents included).
+fn arrays_bytes(
+    hist: &Vec<u16>,
+    shift: &Vec<u8>,
+    groups: &Vec<u32>,
+    mass: &Vec<f64>,
+    present: &Vec<bool>,
+    vectors: &Vec<Vec<f64>>,
+) -> usize {
+    hist.capacity() * 2
+        + shift.capacity()
+        + groups.capacity() * 4
+        + mass.capacity() * 8
+        + present.capacity()
+        + vectors.capacity() * std::mem::size_of::<Vec<f64>>()
+        + vectors.iter().map(|v| v.capacity() * 8).sum::<usize>()
 }
 
 /// Inserts `items` at `at`, appending without a temporary when `at` is the end.

@@ -4,7 +4,7 @@
 //! every histogram's sums over groups of [`GROUP_BINS`] bins, from which a **lower bound** of
 //! each of the nine dissimilarities follows (the GEMINI scheme of Faloutsos et al. 1994, with
 //! a bound specific to each dissimilarity). The bounds of every candidate are computed in one
-//! pass over the group sums; candidates are then scored exactly in order of increasing bound,
+//! pass over the group sums (two for a query with a second cut version, below); candidates are then scored exactly in order of increasing bound,
 //! and the scan stops as soon as the `k`-th best exact score is below every remaining bound.
 //!
 //! The result is **exactly** the head of [`rank_all`] restricted to the kept candidates: the
@@ -39,9 +39,9 @@
 //! **Second cut versions** ([`Query::score`] = `min(D₁, f · D₂)` for a pair of which either
 //! shape has one): the bound is `min(B₁, f · B₂)`, `B₁` the first versions' bound and `B₂` that
 //! of the second pair — the query's second version (or its first) against the candidate's
-//! first version in the one pass over the group sums, or against the candidate's second version
-//! (its own group sums, read per candidate: the few shapes whose short loops the first cut
-//! leaves) for a candidate that has one.
+//! first version, in a second pass over the group sums when the query has a second version, or
+//! against the candidate's second version (its own group sums, read per candidate: the few
+//! shapes whose short loops the first cut leaves) for a candidate that has one.
 
 use super::corpus::{total_at, Corpus, ShapeRef, Slot, GROUP_BINS, MAX_SHIFT};
 use super::score::Query;

@@ -111,6 +111,9 @@ impl Stage {
                 if query.channels.is_empty() {
                     return Err(invalid("exact: at least one channel"));
                 }
+                query
+                    .validate()
+                    .map_err(|e| invalid(format!("exact: {e}")))?;
             }
             Stage::Reciprocal(r) => r
                 .validate()

@@ -436,4 +436,38 @@ fn stage_forms() {
     ] {
         assert!(resolve(bad.clone()).is_err(), "{bad}");
     }
+    // A margin below 1 (or not finite) on an exact stage's query is refused.
+    for f in [0.5, -1.0, f64::INFINITY, f64::NAN] {
+        let query = QuerySpec {
+            alternate_margin: f,
+            ..q.clone()
+        };
+        assert!(
+            Stage::new(Stage::Exact {
+                shortlist: 10,
+                query
+            })
+            .is_err(),
+            "{f}"
+        );
+    }
+}
+
+/// The layout check covers the second version: one of another layout (or with a second
+/// version of its own) does not fit, so a query from another node is refused, not indexed out
+/// of bounds.
+#[test]
+fn a_second_version_must_fit_the_layout() {
+    let l = layout(&["a", "b"], 8, 0.8);
+    let other = layout(&["a"], 8, 0.8);
+    let mut e = Encoded::absent(&l);
+    assert!(l.fits(&e));
+    e.alt = Some(Box::new(Encoded::absent(&l)));
+    assert!(l.fits(&e));
+    e.alt = Some(Box::new(Encoded::absent(&other)));
+    assert!(!l.fits(&e));
+    let mut nested = Encoded::absent(&l);
+    nested.alt = Some(Box::new(Encoded::absent(&l)));
+    e.alt = Some(Box::new(nested));
+    assert!(!l.fits(&e));
 }

@@ -95,16 +95,6 @@ fn unavailable(detail: String, retry_after: u64) -> ApiError {
     }
 }
 
-/// True when `e` has the shape of `layout`'s encodings.
-fn fits(e: &Encoded, l: &Layout) -> bool {
-    e.hist.len() == l.histograms() * l.bins
-        && e.shift.len() == l.histograms()
-        && e.groups.len() == l.histograms() * l.groups
-        && e.mass.len() == l.histograms()
-        && e.present.len() == l.names.len()
-        && e.vectors.len() == l.vectors()
-}
-
 impl App {
     /// This node's shard, when it holds one.
     pub fn shard(&self) -> Option<&Sharding> {
@@ -237,7 +227,7 @@ impl App {
                     return Ok(Err(cal.epoch));
                 }
                 let layout = s.corpus().layout();
-                if !fits(&query, layout) {
+                if !layout.fits(&query) {
                     return Err(ApiError::invalid(
                         "the query's encoding does not fit the layout",
                     ));

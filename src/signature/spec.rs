@@ -451,20 +451,16 @@ impl SignatureSpec {
     /// The analysis options a shape must be analysed with for this spec: `base` with this
     /// spec's handle cutting, when it has one (otherwise `base` unchanged).
     pub fn analysis_options(&self, base: &AnalyzeOptions) -> AnalyzeOptions {
-        let mut o = base.clone();
-        if let Some(c) = &self.cut_handles {
-            o.prepare.cut_handles = Some(c.clone());
+        match &self.cut_handles {
+            Some(c) => with_cut(base, c),
+            None => base.clone(),
         }
-        o
     }
 
     /// The analysis options of the second version ([`SignatureSpec::alternate_cut`]): `base`
     /// with the alternate cut in place of the first; `None` without an alternate cut.
     pub fn alternate_analysis_options(&self, base: &AnalyzeOptions) -> Option<AnalyzeOptions> {
-        let c = self.alternate_cut.as_ref()?;
-        let mut o = base.clone();
-        o.prepare.cut_handles = Some(c.clone());
-        Some(o)
+        self.alternate_cut.as_ref().map(|c| with_cut(base, c))
     }
 
     /// Channel names, in order.
@@ -488,6 +484,13 @@ impl SignatureSpec {
         }
         out
     }
+}
+
+/// `base` with `cut` as its preparation's handle cutting.
+fn with_cut(base: &AnalyzeOptions, cut: &HandleCutOptions) -> AnalyzeOptions {
+    let mut o = base.clone();
+    o.prepare.cut_handles = Some(cut.clone());
+    o
 }
 
 pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {

@@ -10,7 +10,7 @@
 //!
 //! [`sign`] is the one path from a mesh to its signature used by the server (ingest, search by
 //! upload, recomputation of stale signatures); eval, which caches the first analysis, calls
-//! [`alternate`] with it.
+//! [`second_version`] with it.
 
 use super::compute::{compute_signature, Signature};
 use super::spec::SignatureSpec;
@@ -41,17 +41,21 @@ pub fn alternate_analysis(
     analyze_prepared(prepared, report, &opts, ms).ok()
 }
 
-/// Attaches the second version to `sig` (the first version's signature under `spec`): its
-/// channels computed with the same spec on `second`, the alternate analysis of
-/// [`alternate_analysis`] ([`compute_signature`] reads only the channels and the
-/// discretisation of the spec, so both versions carry the same spec key).
-pub fn attach_alternate(
-    sig: &mut Signature,
-    second: &Analysis,
+/// The second version's signature of `mesh` ([`alternate_analysis`], then its channels under
+/// the same spec: [`compute_signature`] reads only the channels and the discretisation, so both
+/// versions carry the same spec key); `None` when the shape has one version.
+///
+/// # Errors
+/// Those of [`compute_signature`] on the second version.
+pub fn second_version(
+    mesh: &Mesh,
+    first: &Analysis,
     spec: &SignatureSpec,
-) -> Result<()> {
-    sig.alternate = Some(Box::new(compute_signature(second, spec)?));
-    Ok(())
+    base: &AnalyzeOptions,
+) -> Result<Option<Signature>> {
+    alternate_analysis(mesh, first, spec, base)
+        .map(|second| compute_signature(&second, spec))
+        .transpose()
 }
 
 /// The first version's analysis of `mesh` and its signature under `spec`, with the second
@@ -69,8 +73,6 @@ pub fn sign(
 ) -> Result<(Analysis, Signature)> {
     let first = analyze(mesh, &spec.analysis_options(base))?;
     let mut sig = compute_signature(&first, spec)?;
-    if let Some(second) = alternate_analysis(mesh, &first, spec, base) {
-        attach_alternate(&mut sig, &second, spec)?;
-    }
+    sig.alternate = second_version(mesh, &first, spec, base)?.map(Box::new);
     Ok((first, sig))
 }
