@@ -465,11 +465,6 @@ impl Corpus {
         }
     }
 
-    /// Whether the shape at `at` has a second version.
-    pub fn has_alt(&self, at: usize) -> bool {
-        self.alts[at].is_some()
-    }
-
     /// Positions `range` that have a second version (the corpus's few; read by the bounds of
     /// [`super::prune`]).
     pub(crate) fn alts_in(

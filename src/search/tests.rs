@@ -176,7 +176,8 @@ proptest! {
                 ), &l)
             })
             .collect();
-        // Half of the shapes get another shape's first version as their second one.
+        // Some shapes (those whose draw names another shape) get that shape's first version as
+        // their second one.
         let shapes: Vec<Encoded> = shapes
             .iter()
             .enumerate()

@@ -5,8 +5,8 @@
 //! alternate cut, kept only when it differs from the first (the alternate rule cut a loop the
 //! first left, or the other way round). The alternate preparation is cheap (the cutter runs in
 //! milliseconds on a genus-0 shape, which it leaves as it is); a second spectrum and signature
-//! are computed only for the shapes that differ (18 of the 280 shapes of bench/dev with the
-//! default's rules).
+//! are computed only for the shapes that differ (22 of the 280 shapes of bench/dev with the
+//! default's rules, all of them topology or iso+topology shapes).
 //!
 //! [`sign`] is the one path from a mesh to its signature used by the server (ingest, search by
 //! upload, recomputation of stale signatures); eval, which caches the first analysis, calls
