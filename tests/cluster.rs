@@ -208,9 +208,6 @@ impl Resp {
 
 /// One request; `Err` for a connection that failed or closed without an answer (retryable).
 fn http(addr: SocketAddr, method: &str, path: &str, body: &[u8]) -> Result<Resp, String> {
-    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5))
-        .map_err(|e| format!("connect {addr}: {e}"))?;
-    s.set_read_timeout(Some(Duration::from_secs(180))).ok();
     // A JSON search by id; a search by upload sends the mesh as it is.
     let ctype = if method == "POST" && path.starts_with("/v1/search") && body.first() == Some(&b'{')
     {
@@ -218,6 +215,20 @@ fn http(addr: SocketAddr, method: &str, path: &str, body: &[u8]) -> Result<Resp,
     } else {
         "application/octet-stream"
     };
+    http_typed(addr, method, path, ctype, body)
+}
+
+/// [`http`] with the body's content type.
+fn http_typed(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    ctype: &str,
+    body: &[u8],
+) -> Result<Resp, String> {
+    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5))
+        .map_err(|e| format!("connect {addr}: {e}"))?;
+    s.set_read_timeout(Some(Duration::from_secs(180))).ok();
     let head = format!(
         "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\n\r\n",
         body.len()
@@ -785,6 +796,99 @@ fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
         );
     }
     eprintln!("cluster: {n} searches equal on both nodes and on a single sled node");
+}
+
+/// A rolling upgrade to a release with another spec (here another eigenpair count, which the
+/// spec key holds): a new node never mixes into its scan the signatures that an old node's
+/// worker stores. It recomputes each one from the stored original and stores it under its own
+/// spec, so a search by upload on the new node finds each shape at distance exactly 0 (the
+/// upload's signature and the stored one are the same computation); a stale signature would not
+/// be at 0.
+#[test]
+fn a_node_of_another_spec_recomputes_the_signatures_it_applies() {
+    let Some(engines) = Engines::start("upgrade", false) else {
+        return;
+    };
+    let (tmp, pg, nats_url) = (engines.tmp(), &engines.pg, engines.nats_url.clone());
+    migrate(&pg.url);
+    let mut meshes = corpus(tmp);
+    meshes.truncate(4);
+    let n = meshes.len();
+
+    let (old, a_old) = serve_node("old", tmp, &pg.url, &nats_url);
+    let (new, a_new) = serve_node_with(
+        "new",
+        tmp,
+        &pg.url,
+        &nats_url,
+        &[],
+        &[("SHAPESEEK_EIGENPAIRS", "30")],
+    );
+    let w_old = worker("worker-old", tmp, &pg.url, &nats_url);
+    let procs = [&old, &new, &w_old];
+    let mut ids = Vec::new();
+    for (name, bytes) in &meshes {
+        let r = http(a_old, "POST", &format!("/v1/shapes?name={name}"), bytes).unwrap();
+        assert_eq!(
+            r.status,
+            201,
+            "{name}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        ids.push(r.json()["id"].as_str().unwrap().to_string());
+    }
+    wait_settled(&[a_old, a_new], n, "upgrade", &procs);
+
+    // Stored under the new spec: the new node replaced what the old worker stored.
+    let new_key = index(a_new)["spec_key"].as_str().unwrap().to_string();
+    let old_key = index(a_old)["spec_key"].as_str().unwrap().to_string();
+    assert!(
+        new_key.ends_with("-k30") && old_key.ends_with("-k40"),
+        "{new_key} {old_key}"
+    );
+    let stored = pg_query(
+        &pg.url,
+        &format!("SELECT count(*)::text FROM shapes WHERE spec_key = '{new_key}'"),
+    );
+    assert_eq!(stored, n.to_string(), "every shape stored under {new_key}");
+    let log = std::fs::read_to_string(tmp.join("new.log")).unwrap();
+    for id in &ids {
+        assert!(
+            log.lines()
+                .any(|l| l.contains("signature of another spec; recomputing") && l.contains(id)),
+            "{id} recomputed\n{}",
+            new.tail()
+        );
+    }
+
+    // The new node's scan holds its own spec's signatures.
+    let boundary = "----shapeseek-upgrade-7d1f";
+    for ((name, bytes), id) in meshes.iter().zip(&ids) {
+        let mut body = format!(
+            "--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{name}\"\r\n\r\n"
+        )
+        .into_bytes();
+        body.extend_from_slice(bytes);
+        body.extend_from_slice(
+            format!(
+                "\r\n--{boundary}\r\nContent-Disposition: form-data; name=\"query\"\r\n\r\n\
+                 {{\"top_k\": 1, \"rerank\": []}}\r\n--{boundary}--\r\n"
+            )
+            .as_bytes(),
+        );
+        let ctype = format!("multipart/form-data; boundary={boundary}");
+        let r = http_typed(a_new, "POST", "/v1/search", &ctype, &body).unwrap();
+        assert_eq!(
+            r.status,
+            200,
+            "{name}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        let hit = &r.json()["hits"][0];
+        assert_eq!(hit["id"].as_str(), Some(id.as_str()), "{name}: {hit}");
+        assert_eq!(hit["score"].as_f64(), Some(0.0), "{name}: {hit}");
+    }
+    eprintln!("upgrade: {n} shapes stored by an old worker recomputed and stored by the new node");
 }
 
 /// A search on `addr` (a JSON body by id, or `upload` bytes with `path`'s parameters): its hits

@@ -132,12 +132,17 @@ impl Engine {
         )
     }
 
-    /// A stored calibration (its JSON) this engine can scan with: `None` when it does not parse
-    /// or was computed with other calibration options (bins, bandwidth, window percentile) than
-    /// the configuration's, e.g. by a release with another default, which then recalibrates.
+    /// A stored calibration (its JSON) this engine can scan with: `None` when it does not parse,
+    /// was computed for another signature spec (key or channels) or with other calibration
+    /// options (bins, bandwidth, window percentile) than the configuration's, e.g. by a release
+    /// with another default, which then recalibrates.
     pub fn stored_calibration(&self, json: &[u8]) -> Option<Calibration> {
         let cal = serde_json::from_slice::<Calibration>(json).ok()?;
-        self.config.calibration.made(&cal).then_some(cal)
+        let spec = &self.config.signature;
+        (self.config.calibration.made(&cal)
+            && cal.spec_key == spec.key()
+            && cal.channel_names == spec.channel_names())
+        .then_some(cal)
     }
 
     /// The epoch of a calibration.
@@ -178,9 +183,9 @@ mod tests {
     use super::*;
     use crate::mesh::topology::HandleCutOptions;
 
-    /// The engine scans with a stored calibration only when it was made with the
-    /// configuration's calibration options (the default's window is the 90th percentile, the
-    /// paper's the 95th); and the default's JSON carries them while a paper configuration's
+    /// The engine scans with a stored calibration only when it was made for its signature spec
+    /// with the configuration's calibration options (the default's window is the 90th
+    /// percentile, the paper's the 95th); and the default's JSON carries them while a paper configuration's
     /// JSON stays as it was.
     #[test]
     fn a_stored_calibration_must_have_the_configurations_options() {
@@ -199,13 +204,28 @@ mod tests {
             e.stored_calibration(&serde_json::to_vec(&paper).unwrap()),
             None
         );
-        let mut other_bins = own;
+        let mut other_bins = own.clone();
         other_bins.bins = 128;
         assert_eq!(
             e.stored_calibration(&serde_json::to_vec(&other_bins).unwrap()),
             None
         );
         assert_eq!(e.stored_calibration(b"not json"), None);
+        // Made for another signature spec (a node of another release in the same cluster):
+        // its windows belong to other channels or distributions.
+        let mut other_spec = own.clone();
+        other_spec.spec_key = "0123456789abcdef".into();
+        assert_eq!(
+            e.stored_calibration(&serde_json::to_vec(&other_spec).unwrap()),
+            None
+        );
+        let mut other_channels = own;
+        other_channels.channel_names.pop();
+        other_channels.window_max.pop();
+        assert_eq!(
+            e.stored_calibration(&serde_json::to_vec(&other_channels).unwrap()),
+            None
+        );
 
         let v = serde_json::to_value(&e.config).unwrap();
         assert_eq!(v["calibration"]["percentile"], 0.9);

@@ -22,7 +22,6 @@
 use super::problem::ApiError;
 use super::state::{App, IngestResult, Upload};
 use crate::queue::{Bus, Change, Job, JobState, JobStore};
-use crate::ranking::Calibration;
 use sha2::{Digest, Sha256};
 use std::collections::HashSet;
 use std::sync::Arc;
@@ -207,17 +206,38 @@ impl App {
         else {
             return Ok(()); // deleted meanwhile
         };
-        let sig = self.engine.decode_signature(&bytes)?;
         let app = self.clone();
         let id = id.to_string();
-        let first = tokio::task::spawn_blocking(move || {
+        let first = tokio::task::spawn_blocking(move || -> Result<Option<bool>, ApiError> {
+            // A signature stored by a node or worker of another spec (a release with another
+            // default during a rolling upgrade) is never mixed into this scan: it is
+            // recomputed from the stored original, as at start-up, and stored for this spec.
+            let sig = match app.current_signature(&rec, &bytes) {
+                Some(s) => s,
+                None => {
+                    tracing::info!(
+                        id = %id,
+                        stored = %rec.spec_key,
+                        current = %app.engine.spec_key(),
+                        "signature of another spec; recomputing"
+                    );
+                    let recomputed = app.admission.on_heavy_pool(|| app.recompute(rec.clone()));
+                    match recomputed.map_err(ApiError::from)? {
+                        Some(s) => s,
+                        None => return Ok(None), // no original (logged)
+                    }
+                }
+            };
             let mut scan = app.scan.write().unwrap_or_else(|p| p.into_inner());
             let first = scan.calibration().is_none();
             scan.insert(&app.engine, &id, &rec.name, &rec.tags, &sig, 1);
-            first
+            Ok(Some(first))
         })
         .await
-        .map_err(ApiError::internal)?;
+        .map_err(ApiError::internal)??;
+        let Some(first) = first else {
+            return Ok(());
+        };
         if first {
             // A provisional calibration on one shape: replaced by the store's epoch (or a new
             // one committed under the lock) so every node ranks with the same.
@@ -266,8 +286,17 @@ impl App {
         if stored.epoch <= self.epoch() {
             return Ok(());
         }
-        let cal: Calibration = serde_json::from_slice(&stored.json)
-            .map_err(|e| ApiError::internal(format!("stored calibration: {e}")))?;
+        // A calibration committed by a node of another spec (its channels, windows or
+        // options) cannot encode this node's signatures: it keeps its own until one of its
+        // spec is committed.
+        let Some(cal) = self.engine.stored_calibration(&stored.json) else {
+            tracing::warn!(
+                epoch = stored.epoch,
+                own = self.epoch(),
+                "the stored calibration was made for another spec; not installed"
+            );
+            return Ok(());
+        };
         let app = self.clone();
         tokio::task::spawn_blocking(move || {
             app.admission.on_heavy_pool(|| {

@@ -149,17 +149,9 @@ impl App {
                     });
                     continue;
                 }
-                let sig = match self.engine.decode_signature(&bytes) {
-                    Ok(s)
-                        if rec.spec_key == spec_key
-                            && self.engine.signature_spec_key(&s) == spec_key =>
-                    {
-                        s
-                    }
-                    stale => {
-                        if let Err(e) = &stale {
-                            tracing::warn!(id = %rec.id, error = %e, "unreadable signature; recomputing");
-                        }
+                let sig = match self.current_signature(&rec, &bytes) {
+                    Some(s) => s,
+                    None => {
                         let Some(sig) = self.recompute(rec.clone())? else {
                             continue;
                         };
@@ -212,9 +204,27 @@ impl App {
             .map(|c| (Arc::new(c), s.calibrated_on as usize, s.epoch))
     }
 
+    /// The stored signature `bytes` of `rec` when it was computed under this node's spec (the
+    /// record's key and the signature's own); `None` when it is stale or unreadable (logged),
+    /// to be recomputed ([`App::recompute`]).
+    pub(super) fn current_signature(&self, rec: &ShapeRecord, bytes: &[u8]) -> Option<Signature> {
+        let spec_key = self.engine.spec_key();
+        match self.engine.decode_signature(bytes) {
+            Ok(s) if rec.spec_key == spec_key && self.engine.signature_spec_key(&s) == spec_key => {
+                Some(s)
+            }
+            Ok(_) => None,
+            Err(e) => {
+                tracing::warn!(id = %rec.id, error = %e, "unreadable signature; recomputing");
+                None
+            }
+        }
+    }
+
     /// Recomputes the signature and payload of `rec` from its stored original (derivable data)
-    /// and stores them; `None` (logged) when the original is missing.
-    fn recompute(&self, mut rec: ShapeRecord) -> crate::Result<Option<Signature>> {
+    /// and stores them; `None` (logged) when the original is missing. Blocking (store calls
+    /// through [`App::block`]).
+    pub(super) fn recompute(&self, mut rec: ShapeRecord) -> crate::Result<Option<Signature>> {
         let Some(orig) = self.block(self.store.mesh(&rec.id))? else {
             tracing::error!(id = %rec.id, "no original mesh to recompute from; skipped");
             return Ok(None);
