@@ -185,8 +185,8 @@ mod tests {
 
     /// The engine scans with a stored calibration only when it was made for its signature spec
     /// with the configuration's calibration options (the default's window is the 90th
-    /// percentile, the paper's the 95th); and the default's JSON carries them while a paper configuration's
-    /// JSON stays as it was.
+    /// percentile, the paper's the 95th); and the default's JSON carries them while a paper
+    /// configuration's JSON stays as it was.
     #[test]
     fn a_stored_calibration_must_have_the_configurations_options() {
         let e = Engine::new();

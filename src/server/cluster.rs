@@ -208,7 +208,7 @@ impl App {
         };
         let app = self.clone();
         let id = id.to_string();
-        let first = tokio::task::spawn_blocking(move || -> Result<Option<bool>, ApiError> {
+        let first = tokio::task::spawn_blocking(move || -> Option<bool> {
             // A signature stored by a node or worker of another spec (a release with another
             // default during a rolling upgrade) is never mixed into this scan: it is
             // recomputed from the stored original, as at start-up, and stored for this spec.
@@ -221,20 +221,25 @@ impl App {
                         current = %app.engine.spec_key(),
                         "signature of another spec; recomputing"
                     );
-                    let recomputed = app.admission.on_heavy_pool(|| app.recompute(rec.clone()));
-                    match recomputed.map_err(ApiError::from)? {
-                        Some(s) => s,
-                        None => return Ok(None), // no original (logged)
+                    // A shape that cannot be recomputed is left out of this scan (logged; the
+                    // next reconciliation tries again) without holding up the others.
+                    match app.admission.on_heavy_pool(|| app.recompute(rec.clone())) {
+                        Ok(Some(s)) => s,
+                        Ok(None) => return None, // no original (logged)
+                        Err(e) => {
+                            tracing::error!(id = %id, error = %e, "could not recompute; skipped");
+                            return None;
+                        }
                     }
                 }
             };
             let mut scan = app.scan.write().unwrap_or_else(|p| p.into_inner());
             let first = scan.calibration().is_none();
             scan.insert(&app.engine, &id, &rec.name, &rec.tags, &sig, 1);
-            Ok(Some(first))
+            Some(first)
         })
         .await
-        .map_err(ApiError::internal)??;
+        .map_err(ApiError::internal)?;
         let Some(first) = first else {
             return Ok(());
         };
