@@ -29,6 +29,9 @@ use serde_json::Value;
 
 #[path = "common/engines.rs"]
 mod engines;
+#[path = "common/multipart.rs"]
+mod multipart;
+use multipart::multipart;
 
 use engines::{free_port, nats_bin, pg_bin_dir, PrivatePg};
 
@@ -862,21 +865,11 @@ fn a_node_of_another_spec_recomputes_the_signatures_it_applies() {
     }
 
     // The new node's scan holds its own spec's signatures.
-    let boundary = "----shapeseek-upgrade-7d1f";
     for ((name, bytes), id) in meshes.iter().zip(&ids) {
-        let mut body = format!(
-            "--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{name}\"\r\n\r\n"
-        )
-        .into_bytes();
-        body.extend_from_slice(bytes);
-        body.extend_from_slice(
-            format!(
-                "\r\n--{boundary}\r\nContent-Disposition: form-data; name=\"query\"\r\n\r\n\
-                 {{\"top_k\": 1, \"rerank\": []}}\r\n--{boundary}--\r\n"
-            )
-            .as_bytes(),
-        );
-        let ctype = format!("multipart/form-data; boundary={boundary}");
+        let (ctype, body) = multipart(&[
+            ("file", Some(name.as_str()), None, bytes.as_slice()),
+            ("query", None, None, br#"{"top_k": 1, "rerank": []}"#),
+        ]);
         let r = http_typed(a_new, "POST", "/v1/search", &ctype, &body).unwrap();
         assert_eq!(
             r.status,

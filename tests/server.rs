@@ -13,6 +13,10 @@ use std::net::{SocketAddr, TcpStream};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+#[path = "common/multipart.rs"]
+mod multipart;
+use multipart::multipart;
+
 /// Eigenpairs per shape in these tests (small meshes, fast CI).
 const K: usize = 30;
 
@@ -137,31 +141,6 @@ fn post_json(addr: SocketAddr, path: &str, v: &Value) -> Resp {
         Some("application/json"),
         v.to_string().as_bytes(),
     )
-}
-
-/// (part name, file name, content type, data).
-type Part<'a> = (&'a str, Option<&'a str>, Option<&'a str>, &'a [u8]);
-
-fn multipart(parts: &[Part]) -> (String, Vec<u8>) {
-    let boundary = "----shapeseek-test-boundary-7d1f";
-    let mut body = Vec::new();
-    for (name, filename, ctype, data) in parts {
-        body.extend_from_slice(format!("--{boundary}\r\n").as_bytes());
-        let mut disp = format!("Content-Disposition: form-data; name=\"{name}\"");
-        if let Some(f) = filename {
-            disp.push_str(&format!("; filename=\"{f}\""));
-        }
-        body.extend_from_slice(disp.as_bytes());
-        body.extend_from_slice(b"\r\n");
-        if let Some(c) = ctype {
-            body.extend_from_slice(format!("Content-Type: {c}\r\n").as_bytes());
-        }
-        body.extend_from_slice(b"\r\n");
-        body.extend_from_slice(data);
-        body.extend_from_slice(b"\r\n");
-    }
-    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
-    (format!("multipart/form-data; boundary={boundary}"), body)
 }
 
 // ---------------------------------------------------------------- server and meshes

@@ -212,7 +212,7 @@ impl App {
             // A signature stored by a node or worker of another spec (a release with another
             // default during a rolling upgrade) is never mixed into this scan: it is
             // recomputed from the stored original, as at start-up, and stored for this spec.
-            let sig = match app.current_signature(&rec, &bytes) {
+            let sig = match app.current_signature(&rec, &bytes, &app.engine.spec_key()) {
                 Some(s) => s,
                 None => {
                     tracing::info!(

@@ -149,7 +149,7 @@ impl App {
                     });
                     continue;
                 }
-                let sig = match self.current_signature(&rec, &bytes) {
+                let sig = match self.current_signature(&rec, &bytes, &spec_key) {
                     Some(s) => s,
                     None => {
                         let Some(sig) = self.recompute(rec.clone())? else {
@@ -204,11 +204,15 @@ impl App {
             .map(|c| (Arc::new(c), s.calibrated_on as usize, s.epoch))
     }
 
-    /// The stored signature `bytes` of `rec` when it was computed under this node's spec (the
-    /// record's key and the signature's own); `None` when it is stale or unreadable (logged),
-    /// to be recomputed ([`App::recompute`]).
-    pub(super) fn current_signature(&self, rec: &ShapeRecord, bytes: &[u8]) -> Option<Signature> {
-        let spec_key = self.engine.spec_key();
+    /// The stored signature `bytes` of `rec` when it was computed under this node's spec,
+    /// `spec_key` = [`Engine::spec_key`] (the record's key and the signature's own); `None` when
+    /// it is stale or unreadable (logged), to be recomputed ([`App::recompute`]).
+    pub(super) fn current_signature(
+        &self,
+        rec: &ShapeRecord,
+        bytes: &[u8],
+        spec_key: &str,
+    ) -> Option<Signature> {
         match self.engine.decode_signature(bytes) {
             Ok(s) if rec.spec_key == spec_key && self.engine.signature_spec_key(&s) == spec_key => {
                 Some(s)
