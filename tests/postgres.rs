@@ -290,6 +290,7 @@ fn prepare_report() -> PrepareReport {
         original_area: 1.25,
         scale_factor: 0.894_427_190_999_915_9,
         handle_cut: None,
+        capped: None,
     }
 }
 

@@ -839,3 +839,43 @@ fn most_of_the_area_must_be_kept() {
     };
     assert_eq!(code(&three, &half), "mesh.area_kept");
 }
+
+/// The default spec's preparation caps a plane-cut sphere into a closed surface (the report
+/// accounts for the cap) and leaves an open square's own long border open
+/// (`docs/quality.md` §19).
+#[test]
+fn the_default_spec_caps_a_cut_rim_and_leaves_a_long_border_open() {
+    use shapeseek::presets::default_config;
+    use shapeseek::spectrum::AnalyzeOptions;
+    let opts = default_config()
+        .signature
+        .analysis_options(&AnalyzeOptions::default())
+        .prepare;
+    assert!(opts.cap_boundaries.is_some());
+    let s = icosphere(4);
+    let faces: Vec<[u32; 3]> = s
+        .faces
+        .iter()
+        .copied()
+        .filter(|f| f.iter().all(|&i| s.vertices[i as usize][2] <= 0.6))
+        .collect();
+    let cut = Mesh::new(s.vertices.clone(), faces);
+    let (plain, r0) = prepare(&cut, &PrepareOptions::default()).unwrap();
+    assert_eq!(r0.boundary_loops, 1);
+    let (m, r) = prepare(&cut, &opts).unwrap();
+    let c = r.capped.expect("capping ran");
+    assert_eq!((c.loops, c.loops_too_long, c.loops_left_open), (1, 0, 0));
+    assert_eq!((r.boundary_edges, r.boundary_loops), (0, 0));
+    assert_eq!(r.euler_characteristic, 2);
+    assert_eq!(r.vertices_out, plain.vertices.len() + c.vertices_added);
+    assert_eq!(m.faces.len(), plain.faces.len() + c.faces_added);
+    assert_eq!(
+        r.vertices_in,
+        r.vertices_out - c.vertices_added + r.welded_vertices + r.unreferenced_vertices
+    );
+    // An open unit square: its border is 4 √A long, above the default's 2.5.
+    let (_, r) = prepare(&rectangle(1.0, 1.0, 12, 12), &opts).unwrap();
+    let c = r.capped.expect("capping ran");
+    assert_eq!((c.loops, c.loops_too_long), (0, 1));
+    assert_eq!(r.boundary_loops, 1);
+}

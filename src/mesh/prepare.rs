@@ -22,6 +22,9 @@
 //!    relative order of their first input index. Fewer than [`PrepareOptions::min_vertices`]
 //!    vertices or [`PrepareOptions::min_faces`] triangles left is refused (`mesh.too_few_vertices`,
 //!    `mesh.too_few_faces`): one triangle, or 500 copies of it, has no spectrum worth storing.
+//!    5a. **Boundary capping** (optional, [`PrepareOptions::cap_boundaries`]): boundary loops
+//!    up to a length bound closed by caps ([`crate::mesh::cap`]). 5b. **Handle cutting** (optional,
+//!    [`PrepareOptions::cut_handles`]).
 //! 6. **Topology report** (never an error): boundary edges and loops, non-manifold edges,
 //!    inconsistently oriented edges, Euler characteristic `V − E + F`.
 //! 7. **Area normalisation** (optional, default on): the area-weighted centroid of the surface is
@@ -32,6 +35,7 @@
 //! welding, which is expected `O(n)` but quadratic in the size of a cluster of vertices that all
 //! fall into neighbouring grid cells.
 
+use super::cap::{cap_boundaries, CapOptions, CapStats};
 use super::topology::{cut_handles_with_map, HandleCutOptions};
 use super::{cross, norm, sub, Mesh};
 use crate::error::DegenerateKind;
@@ -87,6 +91,14 @@ pub struct PrepareOptions {
     /// (welding would otherwise undo a bare split on the next read).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cut_handles: Option<HandleCutOptions>,
+    /// Optional **boundary capping** (step 5a, [`crate::mesh::cap`]): every boundary loop of
+    /// the kept surface not longer than [`CapOptions::max_length`] `· sqrt(area)` is closed by
+    /// a cap before handle cutting and normalisation, so a shape with holes or a part cut away
+    /// is analysed as a closed surface (the loops handle cutting opens are not capped).
+    /// Default `None`; omitted from the JSON when `None`, so the keys of preparations without
+    /// it are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cap_boundaries: Option<CapOptions>,
 }
 
 impl Default for PrepareOptions {
@@ -100,6 +112,7 @@ impl Default for PrepareOptions {
             min_faces: 4,
             min_area_kept: 0.5,
             cut_handles: None,
+            cap_boundaries: None,
         }
     }
 }
@@ -178,6 +191,10 @@ pub struct PrepareReport {
     /// before cutting and the rest the output; the count identities above then do not hold.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub handle_cut: Option<HandleCutSummary>,
+    /// The capping step, when [`PrepareOptions::cap_boundaries`] asks for it (loops capped,
+    /// vertices and faces added; the topology and output counts describe the capped mesh).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub capped: Option<CapStats>,
 }
 
 /// Cleans `mesh` (see the [module documentation](crate::mesh::prepare)) and reports what was done.
@@ -408,6 +425,13 @@ pub fn prepare_with_map(
             ),
         });
     }
+    // 5a. Boundary capping (optional): cap vertices and faces are appended, so `map` holds.
+    let mut capped = None;
+    if let Some(cap) = &opts.cap_boundaries {
+        let (m, stats) = cap_boundaries(&Mesh::new(vertices, faces), cap);
+        (vertices, faces) = (m.vertices, m.faces);
+        capped = Some(stats);
+    }
     // 5b. Handle cutting (optional): cut, then prepare the cut mesh again (components,
     // compaction, topology report, normalisation) and compose the maps.
     let mut handle_cut = None;
@@ -419,6 +443,7 @@ pub fn prepare_with_map(
                 let inner = PrepareOptions {
                     weld_tolerance: None,
                     cut_handles: None,
+                    cap_boundaries: None,
                     ..opts.clone()
                 };
                 let (out, mut r, map2) = prepare_with_map(&cut_mesh, &inner)?;
@@ -444,6 +469,7 @@ pub fn prepare_with_map(
                 r.components_kept = components_kept;
                 r.dropped_area_fraction = dropped_area_fraction;
                 r.read_repairs = mesh.repairs.clone();
+                r.capped = capped;
                 let composed = map
                     .iter()
                     .map(|m| {
@@ -527,6 +553,7 @@ pub fn prepare_with_map(
         scale_factor,
         read_repairs: mesh.repairs.clone(),
         handle_cut,
+        capped,
     };
     Ok((out, report, map))
 }
@@ -550,6 +577,10 @@ fn validate_options(opts: &PrepareOptions) -> Result<()> {
         return Err(Error::InvalidArgument(format!(
             "degenerate_area_ratio must be finite and >= 0, got {r}"
         )));
+    }
+    if let Some(c) = &opts.cap_boundaries {
+        c.validate()
+            .map_err(|e| Error::InvalidArgument(format!("cap_boundaries: {e}")))?;
     }
     if let Some(c) = &opts.cut_handles {
         if !c.remove_band {

@@ -1,6 +1,7 @@
 //! What to compute for a shape: channels (kernel × norm × scale, scale aggregates, baselines),
 //! the pair quadrature and the sketch resolution, with their validation and stable names/keys.
 
+use crate::mesh::cap::CapOptions;
 use crate::mesh::topology::HandleCutOptions;
 use crate::scale::SpectrumScaling;
 use crate::spectrum::AnalyzeOptions;
@@ -408,6 +409,14 @@ pub struct SignatureSpec {
     /// JSON (and key) when `None`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alternate_cut: Option<HandleCutOptions>,
+    /// Boundary capping before the spectrum ([`crate::mesh::cap`], `docs/quality.md` §19):
+    /// every boundary loop of the shape not longer than [`CapOptions::max_length`] (holes, the
+    /// rim of a part cut away; not an open surface's own long border) is closed by a cap before
+    /// handle cutting, for both versions. A preparation step like
+    /// [`SignatureSpec::cut_handles`] ([`SignatureSpec::analysis_options`]). Omitted from the
+    /// JSON (and key) when `None`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cap_boundaries: Option<CapOptions>,
 }
 
 impl Default for SignatureSpec {
@@ -425,6 +434,7 @@ impl Default for SignatureSpec {
             spectrum_scaling: SpectrumScaling::None,
             cut_handles: None,
             alternate_cut: None,
+            cap_boundaries: None,
         }
     }
 }
@@ -449,18 +459,30 @@ impl SignatureSpec {
     }
 
     /// The analysis options a shape must be analysed with for this spec: `base` with this
-    /// spec's handle cutting, when it has one (otherwise `base` unchanged).
+    /// spec's boundary capping and handle cutting, when it has them (otherwise `base`
+    /// unchanged).
     pub fn analysis_options(&self, base: &AnalyzeOptions) -> AnalyzeOptions {
-        match &self.cut_handles {
+        let mut o = match &self.cut_handles {
             Some(c) => with_cut(base, c),
             None => base.clone(),
+        };
+        if self.cap_boundaries.is_some() {
+            o.prepare.cap_boundaries = self.cap_boundaries;
         }
+        o
     }
 
     /// The analysis options of the second version ([`SignatureSpec::alternate_cut`]): `base`
-    /// with the alternate cut in place of the first; `None` without an alternate cut.
+    /// with the spec's capping and the alternate cut in place of the first; `None` without an
+    /// alternate cut.
     pub fn alternate_analysis_options(&self, base: &AnalyzeOptions) -> Option<AnalyzeOptions> {
-        self.alternate_cut.as_ref().map(|c| with_cut(base, c))
+        self.alternate_cut.as_ref().map(|c| {
+            let mut o = with_cut(base, c);
+            if self.cap_boundaries.is_some() {
+                o.prepare.cap_boundaries = self.cap_boundaries;
+            }
+            o
+        })
     }
 
     /// Channel names, in order.
@@ -519,6 +541,9 @@ pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
                 return bad(format!("{what}: {e}"));
             }
         }
+    }
+    if let Some(Err(e)) = spec.cap_boundaries.map(|c| c.validate()) {
+        return bad(format!("cap_boundaries: {e}"));
     }
     let check_t = |t: f64| t.is_finite() && t > 0.0;
     match spec.spectrum_scaling {
