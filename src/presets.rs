@@ -338,6 +338,10 @@ pub fn paper_configs() -> Vec<Config> {
 /// surface like the complete shapes of its character. Chosen by the leave-one-class-out
 /// protocol in all 8 folds (length 2.5 in 6, 1.5 in 2): held-out mean All 95.88 → 96.79,
 /// partiality 86.68 → 90.38.
+///
+/// Two cut versions (`docs/quality.md` §17, §20): a shape that [`DEFAULT_ALTERNATE_CUT`] cuts
+/// differently also gets a second version, and a pair scores the smaller of the two versions'
+/// dissimilarities ([`crate::ranking::DEFAULT_ALTERNATE_MARGIN`], re-chosen with capping).
 pub fn default_config() -> Config {
     let full: Vec<ChannelSpec> = SMALL_HEAT_SCALES
         .iter()

@@ -18,14 +18,23 @@
 //! For a loop of `m` vertices `p_0 … p_{m−1}` (in the direction the mesh's faces traverse its
 //! edges), parametrised by arc length `u ∈ [0, 1)` from `p_0`, and its vertex centroid `c`:
 //! `R = max(1, round(m / 2π))` rings; ring `r` (`1 ≤ r < R`) has
-//! `k_r = max(3, round(m (1 − r/R)))` vertices at `c + (1 − r/R)(p(j/k_r) − c)`,
-//! `j = 0 … k_r − 1` (the loop shrunk towards `c`, resampled uniformly in arc length); two
-//! successive rings are stitched by advancing along whichever ring's next parameter is
-//! smaller, and the innermost ring is joined to a vertex at `c` by a fan. A loop of three
-//! vertices gets one triangle. The cap's triangles are oriented against the loop, so an
-//! oriented mesh stays oriented, and a closed-up manifold mesh has every edge in exactly two
-//! faces. Ring spacing ≈ the loop's edge length, so the cap's triangles have about the size
-//! and shape of the loop's edges' neighbours: no slivers in the Laplacian.
+//! `k_r = max(3, round(m s_r))` vertices, `s_r = 1 − r/R`, at
+//! `c + s_r (p(j/k_r) − c) + sqrt(1 − s_r²) h`, `j = 0 … k_r − 1`: the loop shrunk towards
+//! `c` and resampled uniformly in arc length, lifted into a dome of height
+//! `|h| = DOME_HEIGHT · ρ` (`ρ = length / 2π`, the radius of a circle as long as the loop)
+//! along the loop's outward normal (minus its Newell vector, since the cap runs against the
+//! loop). Two successive rings are stitched by advancing along whichever ring's next
+//! parameter is smaller, and the innermost ring is joined by a fan to a vertex at `c + h`. A
+//! loop of three vertices gets one flat triangle. The cap's triangles are oriented against
+//! the loop, so an oriented mesh stays oriented, and a closed-up manifold mesh has every edge
+//! in exactly two faces. Ring spacing ≈ the loop's edge length, so the cap's triangles have
+//! about the size and shape of the loop's edges' neighbours; the dome keeps the bands
+//! between the shrunk copies of a slit-like loop from being slivers.
+//!
+//! Two loops are left open: one longer than [`CapOptions::max_length`] `· sqrt(area)` (the
+//! own border of an open surface), and one whose cap would still hold a triangle with an
+//! angle below [`MIN_CAP_ANGLE_DEG`] (a crack: such slivers make the cotangent Laplacian
+//! ill-conditioned). Both are counted in [`CapStats`].
 //!
 //! Loops are read off the directed boundary half-edges (edges with one incident face). A
 //! vertex where two loops touch (a "bow tie") is visited once per loop. Edges with more than
@@ -36,7 +45,7 @@
 //! Rust crate offers hole filling on an indexed triangle mesh without a geometry kernel of
 //! its own.
 
-use super::Mesh;
+use super::{dot, norm, sub, Mesh};
 use std::collections::HashMap;
 
 /// What [`cap_boundaries`] did.
@@ -248,7 +257,7 @@ fn cap_loop(vertices: &mut Vec<[f64; 3]>, faces: &mut Vec<[u32; 3]>, lp: &[u32])
         newell[2] += (a[0] - b[0]) * (a[1] + b[1]);
     }
     let rho = total / std::f64::consts::TAU;
-    let nn = (newell[0].powi(2) + newell[1].powi(2) + newell[2].powi(2)).sqrt();
+    let nn = norm(newell);
     let lift = if nn > 1e-12 * rho * rho {
         newell.map(|x| -x / nn * DOME_HEIGHT * rho)
     } else {
@@ -322,16 +331,15 @@ fn smallest_angle(vertices: &[[f64; 3]], f: &[u32; 3]) -> f64 {
             if lb == 0.0 || lc == 0.0 {
                 return 0.0;
             }
-            let d = (b[0] - a[0]) * (c[0] - a[0])
-                + (b[1] - a[1]) * (c[1] - a[1])
-                + (b[2] - a[2]) * (c[2] - a[2]);
-            (d / (lb * lc)).clamp(-1.0, 1.0).acos()
+            (dot(sub(b, a), sub(c, a)) / (lb * lc))
+                .clamp(-1.0, 1.0)
+                .acos()
         })
         .fold(f64::INFINITY, f64::min)
 }
 
 fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    norm(sub(a, b))
 }
 
 #[cfg(test)]
