@@ -21,7 +21,7 @@
 //! `k_r = max(3, round(m s_r))` vertices, `s_r = 1 − r/R`, at
 //! `c + s_r (p(j/k_r) − c) + sqrt(1 − s_r²) h`, `j = 0 … k_r − 1`: the loop shrunk towards
 //! `c` and resampled uniformly in arc length, lifted into a dome of height
-//! `|h| = DOME_HEIGHT · ρ` (`ρ = length / 2π`, the radius of a circle as long as the loop)
+//! `|h| = dome_height · ρ` (default [`DOME_HEIGHT`]) (`ρ = length / 2π`, the radius of a circle as long as the loop)
 //! along the loop's outward normal (minus its Newell vector, since the cap runs against the
 //! loop). Two successive rings are stitched by advancing along whichever ring's next
 //! parameter is smaller, and the innermost ring is joined by a fan to a vertex at `c + h`. A
@@ -76,11 +76,33 @@ pub struct CapOptions {
     /// stays open. `f64::INFINITY` is not representable in JSON: use a large value to cap
     /// every loop.
     pub max_length: f64,
+    /// Height of the cap's dome over the radius `ρ = length / 2π` of its loop (module docs), in
+    /// `[0, 2]`; 0 is a flat cap. Missing from the JSON: [`DOME_HEIGHT`], and omitted from it
+    /// at that value, so the keys of specs written without it are unchanged.
+    #[serde(
+        default = "default_dome_height",
+        skip_serializing_if = "is_default_dome_height"
+    )]
+    pub dome_height: f64,
+}
+
+fn default_dome_height() -> f64 {
+    DOME_HEIGHT
+}
+
+fn is_default_dome_height(h: &f64) -> bool {
+    *h == DOME_HEIGHT
 }
 
 impl CapOptions {
     /// Why these options cannot be used, if they cannot.
     pub fn validate(&self) -> Result<(), String> {
+        if !(0.0..=2.0).contains(&self.dome_height) {
+            return Err(format!(
+                "dome_height must be in [0, 2], got {}",
+                self.dome_height
+            ));
+        }
         if self.max_length.is_finite() && self.max_length > 0.0 {
             Ok(())
         } else {
@@ -96,7 +118,9 @@ impl CapOptions {
 /// is left open ([`CapStats::loops_left_open`]).
 pub const MIN_CAP_ANGLE_DEG: f64 = 1.0;
 
-/// Height of the cap's dome over the radius `ρ = length / 2π` of its loop (module docs).
+/// [`CapOptions::dome_height`] of options that do not name one (the height capping was
+/// introduced with, so specs stored before the field keep their meaning; `default` uses 1,
+/// `docs/quality.md` §20).
 pub const DOME_HEIGHT: f64 = 0.5;
 
 /// The boundary loops of `faces` over `n` vertices: each loop lists its vertices in the
@@ -185,7 +209,7 @@ pub fn cap_boundaries(mesh: &Mesh, opts: &CapOptions) -> (Mesh, CapStats) {
             continue;
         }
         let (v0, f0) = (vertices.len(), faces.len());
-        let ok = cap_loop(&mut vertices, &mut faces, lp)
+        let ok = cap_loop(&mut vertices, &mut faces, lp, opts.dome_height)
             && faces[f0..]
                 .iter()
                 .all(|f| smallest_angle(&vertices, f) >= min_angle);
@@ -203,7 +227,12 @@ pub fn cap_boundaries(mesh: &Mesh, opts: &CapOptions) -> (Mesh, CapStats) {
 }
 
 /// Appends the cap of `lp` (module docs); `false` when the loop has no length.
-fn cap_loop(vertices: &mut Vec<[f64; 3]>, faces: &mut Vec<[u32; 3]>, lp: &[u32]) -> bool {
+fn cap_loop(
+    vertices: &mut Vec<[f64; 3]>,
+    faces: &mut Vec<[u32; 3]>,
+    lp: &[u32],
+    dome_height: f64,
+) -> bool {
     let m = lp.len();
     let p: Vec<[f64; 3]> = lp.iter().map(|&i| vertices[i as usize]).collect();
     // A triangle's orientation against the loop: the loop runs a→b, the cap b→a.
@@ -246,7 +275,7 @@ fn cap_loop(vertices: &mut Vec<[f64; 3]>, faces: &mut Vec<[u32; 3]>, lp: &[u32])
         ]
     };
     // The dome: lifted along the loop's outward normal (minus its Newell vector: the cap runs
-    // against the loop) by `DOME_HEIGHT · ρ · sqrt(1 − s²)` at shrink factor `s`, ρ the radius
+    // against the loop) by `dome_height · ρ · sqrt(1 − s²)` at shrink factor `s`, ρ the radius
     // of a circle as long as the loop. A slit's shrunk copies are slits; lifted, the bands
     // between them are not slivers.
     let mut newell = [0.0; 3];
@@ -259,7 +288,7 @@ fn cap_loop(vertices: &mut Vec<[f64; 3]>, faces: &mut Vec<[u32; 3]>, lp: &[u32])
     let rho = total / std::f64::consts::TAU;
     let nn = norm(newell);
     let lift = if nn > 1e-12 * rho * rho {
-        newell.map(|x| -x / nn * DOME_HEIGHT * rho)
+        newell.map(|x| -x / nn * dome_height * rho)
     } else {
         [0.0; 3]
     };
@@ -347,7 +376,10 @@ mod tests {
     use super::*;
     use crate::mesh::generate;
 
-    const ALL: CapOptions = CapOptions { max_length: 1e9 };
+    const ALL: CapOptions = CapOptions {
+        max_length: 1e9,
+        dome_height: DOME_HEIGHT,
+    };
 
     /// Every edge in exactly two faces, traversed in opposite directions.
     fn closed_and_oriented(m: &Mesh) -> bool {
@@ -429,6 +461,57 @@ mod tests {
     }
 
     #[test]
+    fn the_dome_height_sets_the_caps_apex_and_is_validated() {
+        let m = cut_sphere(0.5);
+        let lp = &boundary_loops(m.vertices.len(), &m.faces)[0];
+        let len: f64 = (0..lp.len())
+            .map(|i| {
+                dist(
+                    m.vertices[lp[i] as usize],
+                    m.vertices[lp[(i + 1) % lp.len()] as usize],
+                )
+            })
+            .sum();
+        let rho = len / std::f64::consts::TAU;
+        // The loop's vertex centroid, over which the cap's centre vertex stands.
+        let loop_z = lp.iter().map(|&i| m.vertices[i as usize][2]).sum::<f64>() / lp.len() as f64;
+        for h in [0.0, 0.25, 1.0] {
+            let opts = CapOptions {
+                dome_height: h,
+                ..ALL
+            };
+            assert_eq!(opts.validate(), Ok(()));
+            let (c, st) = cap_boundaries(&m, &opts);
+            assert_eq!(st.loops, 1);
+            assert!(closed_and_oriented(&c));
+            // The apex (the centre vertex, appended last) stands h·ρ above that centroid.
+            let apex = c.vertices.last().unwrap()[2] - loop_z;
+            assert!((apex - h * rho).abs() < 1e-9 + 0.01 * rho, "h {h}: {apex}");
+        }
+        for bad in [-0.1, 2.5, f64::NAN] {
+            let opts = CapOptions {
+                dome_height: bad,
+                ..ALL
+            };
+            assert!(opts.validate().is_err(), "{bad}");
+        }
+        // The default height is left out of the JSON (spec keys unchanged), others kept.
+        assert_eq!(
+            serde_json::to_string(&ALL).unwrap(),
+            r#"{"max_length":1000000000.0}"#
+        );
+        let back: CapOptions = serde_json::from_str(r#"{"max_length":2.5}"#).unwrap();
+        assert_eq!(back.dome_height, DOME_HEIGHT);
+        let with = CapOptions {
+            dome_height: 1.0,
+            ..ALL
+        };
+        assert!(serde_json::to_string(&with)
+            .unwrap()
+            .contains("dome_height"));
+    }
+
+    #[test]
     fn closed_meshes_are_unchanged_and_a_torus_keeps_its_genus() {
         let t = generate::torus(1.0, 0.4, 32, 16);
         let (c, st) = cap_boundaries(&t, &ALL);
@@ -462,7 +545,13 @@ mod tests {
         assert!(closed_and_oriented(&c));
         // Only the loops not longer than max_length · sqrt(area) are capped: the two polar
         // rims are ≈ 2π · 0.8 / sqrt(area) ≈ 1.6 long, the one-triangle hole ≈ 0.03.
-        let (_, short) = cap_boundaries(&m, &CapOptions { max_length: 1.0 });
+        let (_, short) = cap_boundaries(
+            &m,
+            &CapOptions {
+                max_length: 1.0,
+                dome_height: DOME_HEIGHT,
+            },
+        );
         assert_eq!((short.loops, short.loops_too_long), (1, 2));
         // Capping is idempotent: nothing is left to cap.
         let (_, again) = cap_boundaries(&c, &ALL);
