@@ -196,15 +196,7 @@ pub fn cap_boundaries(mesh: &Mesh, opts: &CapOptions) -> (Mesh, CapStats) {
     let mut stats = CapStats::default();
     let min_angle = MIN_CAP_ANGLE_DEG.to_radians();
     for lp in &loops {
-        let len: f64 = (0..lp.len())
-            .map(|i| {
-                dist(
-                    mesh.vertices[lp[i] as usize],
-                    mesh.vertices[lp[(i + 1) % lp.len()] as usize],
-                )
-            })
-            .sum();
-        if len > max_len {
+        if loop_length(&mesh.vertices, lp) > max_len {
             stats.loops_too_long += 1;
             continue;
         }
@@ -224,6 +216,18 @@ pub fn cap_boundaries(mesh: &Mesh, opts: &CapOptions) -> (Mesh, CapStats) {
         }
     }
     (Mesh::new(vertices, faces), stats)
+}
+
+/// The length of the closed polygon `lp` over `vertices`.
+fn loop_length(vertices: &[[f64; 3]], lp: &[u32]) -> f64 {
+    (0..lp.len())
+        .map(|i| {
+            dist(
+                vertices[lp[i] as usize],
+                vertices[lp[(i + 1) % lp.len()] as usize],
+            )
+        })
+        .sum()
 }
 
 /// Appends the cap of `lp` (module docs); `false` when the loop has no length.
@@ -464,15 +468,7 @@ mod tests {
     fn the_dome_height_sets_the_caps_apex_and_is_validated() {
         let m = cut_sphere(0.5);
         let lp = &boundary_loops(m.vertices.len(), &m.faces)[0];
-        let len: f64 = (0..lp.len())
-            .map(|i| {
-                dist(
-                    m.vertices[lp[i] as usize],
-                    m.vertices[lp[(i + 1) % lp.len()] as usize],
-                )
-            })
-            .sum();
-        let rho = len / std::f64::consts::TAU;
+        let rho = loop_length(&m.vertices, lp) / std::f64::consts::TAU;
         // The loop's vertex centroid, over which the cap's centre vertex stands.
         let loop_z = lp.iter().map(|&i| m.vertices[i as usize][2]).sum::<f64>() / lp.len() as f64;
         for h in [0.0, 0.25, 1.0] {
