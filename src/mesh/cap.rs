@@ -21,11 +21,11 @@
 //! `k_r = max(3, round(m s_r))` vertices, `s_r = 1 − r/R`, at
 //! `c + s_r (p(j/k_r) − c) + sqrt(1 − s_r²) h`, `j = 0 … k_r − 1`: the loop shrunk towards
 //! `c` and resampled uniformly in arc length, lifted into a dome of height
-//! `|h| = dome_height · ρ` (default [`DOME_HEIGHT`]) (`ρ = length / 2π`, the radius of a circle as long as the loop)
-//! along the loop's outward normal (minus its Newell vector, since the cap runs against the
-//! loop). Two successive rings are stitched by advancing along whichever ring's next
-//! parameter is smaller, and the innermost ring is joined by a fan to a vertex at `c + h`. A
-//! loop of three vertices gets one flat triangle. The cap's triangles are oriented against
+//! `|h| = dome_height · ρ` ([`CapOptions::dome_height`]; `ρ = length / 2π`, the radius of a
+//! circle as long as the loop) along the loop's outward normal (minus its Newell vector,
+//! since the cap runs against the loop). Two successive rings are stitched by advancing along
+//! whichever ring's next parameter is smaller, and the innermost ring is joined by a fan to a
+//! vertex at `c + h`. A loop of three vertices gets one flat triangle. The cap's triangles are oriented against
 //! the loop, so an oriented mesh stays oriented, and a closed-up manifold mesh has every edge
 //! in exactly two faces. Ring spacing ≈ the loop's edge length, so the cap's triangles have
 //! about the size and shape of the loop's edges' neighbours; the dome keeps the bands
