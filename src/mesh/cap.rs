@@ -25,11 +25,11 @@
 //! circle as long as the loop) along the loop's outward normal (minus its Newell vector,
 //! since the cap runs against the loop). Two successive rings are stitched by advancing along
 //! whichever ring's next parameter is smaller, and the innermost ring is joined by a fan to a
-//! vertex at `c + h`. A loop of three vertices gets one flat triangle. The cap's triangles are oriented against
-//! the loop, so an oriented mesh stays oriented, and a closed-up manifold mesh has every edge
-//! in exactly two faces. Ring spacing ≈ the loop's edge length, so the cap's triangles have
-//! about the size and shape of the loop's edges' neighbours; the dome keeps the bands
-//! between the shrunk copies of a slit-like loop from being slivers.
+//! vertex at `c + h`. A loop of three vertices gets one flat triangle. The cap's triangles are
+//! oriented against the loop, so an oriented mesh stays oriented, and a closed-up manifold
+//! mesh has every edge in exactly two faces. Ring spacing ≈ the loop's edge length, so the
+//! cap's triangles have about the size and shape of the loop's edges' neighbours; the dome
+//! keeps the bands between the shrunk copies of a slit-like loop from being slivers.
 //!
 //! Two loops are left open: one longer than [`CapOptions::max_length`] `· sqrt(area)` (the
 //! own border of an open surface), and one whose cap would still hold a triangle with an
