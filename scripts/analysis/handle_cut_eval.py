@@ -19,36 +19,21 @@ line) and scored on the queries of class c; mean and worst fold per transformati
 Needs numpy.
 """
 import csv
-import json
 import os
 import sys
 
 import numpy as np
 
-TR = ["null", "isometry", "topology", "isometry+topology", "partiality", "triangulation", "noise", "scale"]
+from matrix_ap import TR, ap_all, read_matrix
+
 SHORT = ["Null", "Iso", "Topo", "IsoTopo", "Part", "Tri", "Noise", "Scale"]
 
 
 def load(path, name, ids):
-    d = json.load(open(path))
-    got = [s["id"] for s in d["shapes"]]
-    if got != ids:
+    m, shapes = read_matrix(path, name)
+    if [s["id"] for s in shapes] != ids:
         sys.exit(f"{path}: shape ids differ from the manifest")
-    m = np.array([[np.nan if v is None else v for v in row] for row in d["matrices"][name]], float)
-    np.fill_diagonal(m, 0.0)
     return m
-
-
-def ap_all(D, cls):
-    n = len(cls)
-    aps = np.zeros(n)
-    for q in range(n):
-        idx = np.array([j for j in range(n) if j != q])
-        order = np.lexsort((idx, D[q, idx]))  # ties by manifest order
-        rel = (cls[idx[order]] == cls[q]).astype(float)
-        prec = np.cumsum(rel) / np.arange(1, len(rel) + 1)
-        aps[q] = (prec * rel).sum() / rel.sum()
-    return aps
 
 
 def main():

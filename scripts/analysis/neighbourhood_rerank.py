@@ -14,31 +14,16 @@ re-ranking (Zhong et al. 2017) with one k and with the mean over k = 8, 16, 32. 
 the whole corpus (every other shape's row), unlike the product's stage, which sees a shortlist.
 Needs numpy.
 """
-import json
 import sys
 
 import numpy as np
 
-TR = ["null", "isometry", "topology", "isometry+topology", "partiality", "triangulation", "noise", "scale"]
+from matrix_ap import TR, ap_all, read_matrix
 
 
 def load(path, name):
-    d = json.load(open(path))
-    m = np.array([[np.nan if v is None else v for v in row] for row in d["matrices"][name]])
-    np.fill_diagonal(m, 0.0)
-    return m, np.array([s["class"] for s in d["shapes"]]), np.array([s["transform"] for s in d["shapes"]])
-
-
-def ap_all(D, cls):
-    n = len(cls)
-    aps = np.zeros(n)
-    for q in range(n):
-        idx = np.array([j for j in range(n) if j != q])
-        order = np.lexsort((idx, D[q, idx]))  # ties by manifest order
-        rel = (cls[idx[order]] == cls[q]).astype(float)
-        prec = np.cumsum(rel) / np.arange(1, len(rel) + 1)
-        aps[q] = (prec * rel).sum() / rel.sum()
-    return aps
+    m, shapes = read_matrix(path, name)
+    return m, np.array([s["class"] for s in shapes]), np.array([s["transform"] for s in shapes])
 
 
 def row(label, aps, tr):
