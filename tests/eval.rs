@@ -352,6 +352,24 @@ fn reference_files_of_the_bench_parse_when_present() {
 
 // ---------------------------------------------------------------- configurations
 
+/// Every configuration file committed under `docs/quality/` (the commands of
+/// `docs/quality.md` evaluate them) loads, with no field this version does not know.
+#[test]
+fn the_committed_configuration_files_load() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/quality");
+    let mut n = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let p = entry.unwrap().path();
+        if p.extension().and_then(|e| e.to_str()) == Some("json") {
+            let cs = load_configs(Some(p.to_str().unwrap()))
+                .unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            assert!(!cs.is_empty(), "{}", p.display());
+            n += 1;
+        }
+    }
+    assert!(n >= 10, "{n} files");
+}
+
 #[test]
 fn configs_presets_files_and_unions() {
     let all = load_configs(None).unwrap();
@@ -378,6 +396,27 @@ fn configs_presets_files_and_unions() {
     let p = dir.path().join("bad.json");
     std::fs::write(&p, "{\"name\": 3}").unwrap();
     assert!(load_configs(Some(p.to_str().unwrap())).is_err());
+    // A field this version does not know (misspelt, or from a newer version) is an error
+    // naming its path and the entry, not silently dropped (the configuration would otherwise
+    // be evaluated without it).
+    let mut v = serde_json::to_value(&d).unwrap();
+    v["signature"]["cut_handles"]["max_neck_aspekt"] = serde_json::json!(2.0);
+    v["query"]["marginn"] = serde_json::json!(1.0);
+    let p = dir.path().join("typo.json");
+    std::fs::write(
+        &p,
+        serde_json::to_string(&serde_json::json!([serde_json::to_value(&d).unwrap(), v])).unwrap(),
+    )
+    .unwrap();
+    let e = load_configs(Some(p.to_str().unwrap()))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("entry 1")
+            && e.contains("`signature.cut_handles.max_neck_aspekt`")
+            && e.contains("`query.marginn`"),
+        "{e}"
+    );
     // Union: same discretisation -> one spec holding every channel once.
     let (specs, group_of) = union_specs(&all);
     for (c, &g) in all.iter().zip(&group_of) {

@@ -42,9 +42,11 @@ pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
         };
         let mut out = Vec::new();
         for (i, item) in items.into_iter().enumerate() {
-            let c: Config = serde_json::from_value(item)
-                .map_err(|e| Error::InvalidArgument(format!("config {spec}, entry {i}: {e}")))?;
-            out.push(c);
+            out.push(
+                config_from_value(item).map_err(|e| {
+                    Error::InvalidArgument(format!("config {spec}, entry {i}: {e}"))
+                })?,
+            );
         }
         if out.is_empty() {
             return Err(Error::InvalidArgument(format!(
@@ -74,6 +76,56 @@ pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
                 .collect()
         }
     }
+}
+
+/// One configuration of a `--config` file. A field this version does not know is an error
+/// naming its path (`signature.cut_handles.max_neck_aspekt`), not silently dropped: a misspelt
+/// or newer option would otherwise evaluate the configuration without it, with nothing to
+/// show for it. (The stored specifications of an index are read leniently elsewhere, so that an
+/// option removed from the code does not make an index unreadable.)
+pub(super) fn config_from_value(item: Value) -> std::result::Result<Config, String> {
+    let mut unknown = Vec::new();
+    let c: Config = serde_ignored::deserialize(item, |path| unknown.push(field_path(&path)))
+        .map_err(|e| e.to_string())?;
+    match unknown.as_slice() {
+        [] => Ok(c),
+        paths => Err(format!(
+            "unknown field{} {}: not an option of this version of shapeseek (check the \
+             spelling; the `SignatureSpec` and `QuerySpec` schemas of api/openapi.yaml list the options)",
+            if paths.len() > 1 { "s" } else { "" },
+            paths
+                .iter()
+                .map(|p| format!("`{p}`"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )),
+    }
+}
+
+/// `signature.cut_handles.max_neck_aspekt`: the JSON keys and list indices of an ignored
+/// field, without serde_ignored's `?` for the `Option`s and newtypes it passes through.
+fn field_path(path: &serde_ignored::Path) -> String {
+    use serde_ignored::Path;
+    let mut parts = Vec::new();
+    let mut p = path;
+    loop {
+        p = match p {
+            Path::Root => break,
+            Path::Seq { parent, index } => {
+                parts.push(index.to_string());
+                parent
+            }
+            Path::Map { parent, key } => {
+                parts.push(key.clone());
+                parent
+            }
+            Path::Some { parent }
+            | Path::NewtypeStruct { parent }
+            | Path::NewtypeVariant { parent } => parent,
+        };
+    }
+    parts.reverse();
+    parts.join(".")
 }
 
 /// Groups of configurations sharing one signature specification: the union of their channels,
