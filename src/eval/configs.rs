@@ -83,7 +83,7 @@ pub fn load_configs(spec: Option<&str>) -> Result<Vec<Config>> {
 /// or newer option would otherwise evaluate the configuration without it, with nothing to
 /// show for it. (The stored specifications of an index are read leniently elsewhere, so that an
 /// option removed from the code does not make an index unreadable.)
-pub(super) fn config_from_value(item: Value) -> std::result::Result<Config, String> {
+fn config_from_value(item: Value) -> std::result::Result<Config, String> {
     let mut unknown = Vec::new();
     let c: Config = serde_ignored::deserialize(item, |path| unknown.push(field_path(&path)))
         .map_err(|e| e.to_string())?;

@@ -545,7 +545,7 @@ mod tests {
             &m,
             &CapOptions {
                 max_length: 1.0,
-                dome_height: DOME_HEIGHT,
+                ..ALL
             },
         );
         assert_eq!((short.loops, short.loops_too_long), (1, 2));
