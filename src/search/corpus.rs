@@ -20,9 +20,10 @@
 //! Vector channels (ShapeDNA) are kept as `f64` vectors; a channel a shape lacks is marked
 //! absent. A shape with a second cut version ([`crate::signature::Signature::alternate`]) keeps
 //! it as a second [`Encoded`] beside its row, boxed (8 bytes per shape without one: the
-//! default gives one to the few shapes whose short loops its first cut leaves). 256 bins × 6 channels cost 3 072 bytes of counts, 192 bytes of group sums, 48 bytes
-//! of masses and 6 of exponents per shape: the three `f64` arrays per bin they replace cost
-//! 36 864.
+//! default gives one to the few shapes whose short loops its first cut leaves). Per channel,
+//! 256 bins cost 512 bytes of counts, 32 of group sums, 8 of mass and 1 of exponent (553; the
+//! default's seven channels: 3 871 per shape): the three `f64` arrays per bin they replace cost
+//! 6 144.
 //!
 //! [`Encoded`] is one shape in the same encoding (a query, or a row being inserted); a
 //! [`ShapeRef`] views either.

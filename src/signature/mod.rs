@@ -72,7 +72,11 @@
 //! [`DEFAULT_HEAT_SCALES`] = `0.016 · 2.5^j`, j = 0..5, for **unit-area** shapes (the pipeline
 //! normalises area): unit-area shapes have `λ_1 ≈ 6`, so `t λ_1` spans ≈ 0.1 … 10, from "many
 //! eigenfunctions matter" to "φ_1 dominates", and at the smallest t `e^{-t λ_100} ≈ e^{-20}`, so
-//! k = 100 eigenpairs truncate nothing. [`SMALL_HEAT_SCALES`] are the three smallest.
+//! k = 100 eigenpairs truncate nothing. [`SMALL_HEAT_SCALES`] are the three smallest. The
+//! default's full-range channels go two steps further down the same grid
+//! ([`crate::presets::DEFAULT_FULL_RANGE_TIMES`], t = 0.00256 and 0.0064): there the 100
+//! eigenpairs do truncate the kernel (`e^{−t λ_100}` ≈ 0.04 at t = 0.00256), so those channels
+//! are heat kernels band-limited to the first 100 modes — the same band on every shape.
 //!
 //! # Complexity and determinism
 //!
