@@ -37,6 +37,16 @@ fn heat6() -> Vec<ChannelSpec> {
         .collect()
 }
 
+/// Heat-L2 channels at `times`, in that order.
+fn heat_at(times: &[f64]) -> SignatureSpec {
+    SignatureSpec::with_channels(
+        times
+            .iter()
+            .map(|&t| ChannelSpec::heat(t, Norm::L2))
+            .collect(),
+    )
+}
+
 fn nl1(a: &[f64], b: &[f64]) -> f64 {
     let (sa, sb): (f64, f64) = (a.iter().sum(), b.iter().sum());
     a.iter().zip(b).map(|(x, y)| (x / sa - y / sb).abs()).sum()
@@ -106,11 +116,12 @@ fn hist(s: &QuantileSketch, window: f64) -> Histogram {
 }
 
 /// Measures, on a generated ~3 000-vertex shape (bumpy torus 75 × 40, k = 100), the nL1 error of
-/// the six heat-L2 histograms of each spec against binning the exact all-pairs a_x a_y
+/// the heat-L2 histograms of each spec (its channels at `times`, in order) against binning the
+/// exact all-pairs a_x a_y
 /// distances directly, on the shape's own 95th-percentile window and on half / twice it (a
 /// corpus window differs from the shape's own). Returns per spec (own-window worst,
 /// other-windows worst).
-fn quadrature_errors(specs: &[(&str, SignatureSpec)]) -> Vec<(f64, f64)> {
+fn quadrature_errors(specs: &[(&str, SignatureSpec)], times: &[f64]) -> Vec<(f64, f64)> {
     let mesh = generate::bumpy_torus(75, 40);
     let a = analysis_of(&mesh, 100, true);
     let zero_tol = ZERO_MODE_TOLERANCE * 4.0 * std::f64::consts::PI;
@@ -126,7 +137,7 @@ fn quadrature_errors(specs: &[(&str, SignatureSpec)]) -> Vec<(f64, f64)> {
         }
     }
     let mut worst = vec![(0.0f64, 0.0f64); specs.len()];
-    for (c, &t) in DEFAULT_HEAT_SCALES.iter().enumerate() {
+    for (c, &t) in times.iter().enumerate() {
         let w = transfer_weights(&Kernel::Heat { t }, &a.spectrum.eigenvalues, zero_tol);
         let mut pairs = exact_pairs(&a, &w);
         let window = weighted_quantile(&mut pairs, 0.95);
@@ -155,14 +166,19 @@ fn quadrature_errors(specs: &[(&str, SignatureSpec)]) -> Vec<(f64, f64)> {
 /// the raw pairs on the own window (measured ≤ 0.001) and 0.01 otherwise (≤ 0.006).
 #[test]
 fn quadrature_and_sketch_errors_against_exact_all_pairs() {
-    let default = SignatureSpec::with_channels(heat6());
-    let mut exact = default.clone();
-    exact.quadrature = PairQuadrature::AllVertices;
-    let w = quadrature_errors(&[("exact", exact), ("default", default)]);
-    println!(
-        "worst nL1 (own window, other windows): exact-sketch {:?}, default quadrature {:?}",
-        w[0], w[1]
-    );
+    let errors = |times: &[f64]| {
+        let default = heat_at(times);
+        let mut exact = default.clone();
+        exact.quadrature = PairQuadrature::AllVertices;
+        let w = quadrature_errors(&[("exact", exact), ("default", default)], times);
+        println!(
+            "{times:?}: worst nL1 (own window, other windows): exact-sketch {:?}, default \
+             quadrature {:?}",
+            w[0], w[1]
+        );
+        w
+    };
+    let w = errors(&DEFAULT_HEAT_SCALES);
     assert!(
         w[0].0 < 0.002 && w[0].1 < 0.01,
         "sketch derivation error {:?}",
@@ -170,6 +186,29 @@ fn quadrature_and_sketch_errors_against_exact_all_pairs() {
     );
     assert!(
         w[1].0 < 0.02 && w[1].1 < 0.03,
+        "quadrature error {:?}",
+        w[1]
+    );
+    // The default's two smaller full-range times (presets::DEFAULT_FULL_RANGE_TIMES): the same
+    // bars on the shape's own window (measured ≤ 0.0016 and ≤ 0.0076); on half of it the
+    // distribution, concentrated near its upper end at these times, leaves the window's lower
+    // half to a few of the sketch's 1 025 quantiles, so sketch and quadrature err by up to
+    // 0.078 and 0.094 (t = 0.00256; twice the window ≤ 0.010). The bars record that: how far a
+    // corpus window (the pooled 90th percentile) falls below a shape's own at these times was
+    // not measured (docs/quality.md §22).
+    let small: Vec<f64> = crate::presets::DEFAULT_FULL_RANGE_TIMES
+        .iter()
+        .copied()
+        .filter(|t| !DEFAULT_HEAT_SCALES.contains(t))
+        .collect();
+    let w = errors(&small);
+    assert!(
+        w[0].0 < 0.002 && w[0].1 < 0.1,
+        "sketch derivation error {:?}",
+        w[0]
+    );
+    assert!(
+        w[1].0 < 0.02 && w[1].1 < 0.12,
         "quadrature error {:?}",
         w[1]
     );
@@ -203,7 +242,7 @@ fn quadrature_sweep() {
         };
         specs.push((name, s));
     }
-    let w = quadrature_errors(&specs);
+    let w = quadrature_errors(&specs, &DEFAULT_HEAT_SCALES);
     for ((n, _), e) in specs.iter().zip(&w) {
         println!("{n}: own window {:.4}, half/twice {:.4}", e.0, e.1);
     }
