@@ -388,13 +388,14 @@ pub fn default_config() -> Config {
 /// j = −2 … 1 (`docs/quality.md` §22). Until then the full range used t = 0.016, 0.04, 0.1,
 /// which cannot tell human figures of a similar build apart: on a benchmark built like
 /// bench/dev from other posed characters (three humans, two animals) a human query's first 33
-/// shapes held 31 % other humans. Smaller times resolve finer geometry (proportions, girth).
+/// shapes held 18–57 % other humans. Smaller times resolve finer geometry (proportions, girth).
 /// At t = 0.00256 the k = 100 eigenpairs truncate the kernel (`e^{−t λ_100} ≈ 0.04` after the
 /// Weyl scaling), so those channels are heat kernels band-limited to the first 100 modes, the
 /// same band on every shape. Chosen by the leave-one-class-out protocol over 14 characters
 /// (bench/dev, a second human, welds of all nine, the other posed characters) in 9 of 14 folds
 /// (the rest: the same with t = 0.1 added): held-out mean All 85.66 → 87.82; on bench/dev
-/// alone 97.36 → 98.10 (iso+topology 96.58 → 98.43, partiality 92.95 → 96.26).
+/// alone 97.36 → 98.10 (iso+topology 96.58 → 98.43, partiality 92.95 → 96.26; topology
+/// 98.78 → 96.26).
 pub const DEFAULT_FULL_RANGE_TIMES: [f64; 4] = [0.00256, 0.0064, 0.016, 0.04];
 
 /// The default's histogram window: the 90th percentile of the pooled corpus distances of each

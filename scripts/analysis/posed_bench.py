@@ -17,13 +17,16 @@ README describes:
   `null`; the other poses mapped onto that connectivity by barycentric coordinates of the
   closest points on the reference: `iso1..8` (fewer where a character has fewer poses);
 * `topo1..4`, `isotopo1..4`: welds of the null shape and of four other poses (reused from the
-  isometry poses where the character has fewer than 12) with 1..4 bridges and discs of
+  isometry poses where the character has fewer than 12 poses besides the reference) with 1..4
+  bridges and discs of
   1.5..3 mean edge lengths, by `examples/weld_bench` (the project's implementation of the
   README's weld; seed = strength);
 * `holes1..3` (2/3/4 geodesic balls removing 3/6/10 % of the area), `cut1..3` (a random plane
   removing 5/12/20 %), largest component kept;
-* `tri1..4` from the full-resolution reference: isotropic remeshing to 1.25x and 1.5x the null
-  shape's vertices, quadric decimation to 0.75x and 0.5x;
+* `tri1..4` from the full-resolution reference: isotropic remeshing aimed at 1.25x and 1.5x the
+  null shape's vertices (the edge length of an equilateral mesh of that size; on five TOSCA
+  characters it overshoots, 5 700-6 800 and 6 700-7 800 vertices for about 5 000 and 6 000;
+  the counts are printed), quadric decimation to 0.75x and 0.5x;
 * `noise1..4`: Gaussian displacement along the vertex normals, sigma 0.10/0.20/0.35/0.50 mean
   edge lengths; `scale1..4`: factors 1.25/1.5/2/0.5 about the centroid.
 
@@ -198,6 +201,7 @@ def build(src, out, name, rows):
     for s, (op, x) in enumerate([(remesh, 1.25), (decimate, .75), (remesh, 1.5), (decimate, .5)], 1):
         v, f = op(vr, fr, int(round(x * nv)))
         shapes.append((f"tri{s}", "triangulation", s, ref_n, normalise(v, f), f))
+        print(f"{name}-tri{s}: {len(v)} vertices", file=sys.stderr)
     nrm = trimesh.Trimesh(null, fd, process=False).vertex_normals
     for s, sigma in enumerate([.10, .20, .35, .50], 1):
         v = null + (sigma * ebar * rng.normal(size=len(null)))[:, None] * nrm
@@ -223,11 +227,14 @@ def build(src, out, name, rows):
         for s in range(1, 5):
             for tr, (sid, n, _) in (("topology", srcs[0]), ("isometry+topology", srcs[s])):
                 run = os.path.join(tmp, f"{sid}-{s}")
-                subprocess.run([WELD, os.path.join(tmp, "m.csv"), run, "--class", name,
-                                "--sources", sid, "--bridges", str(s),
-                                "--disc-edges", str(1 + 0.5 * s), "--seed", str(s)],
-                               check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-                made = next(csv.DictReader(open(os.path.join(run, "report.csv"))))["bridges_made"]
+                done = subprocess.run([WELD, os.path.join(tmp, "m.csv"), run, "--class", name,
+                                       "--sources", sid, "--bridges", str(s),
+                                       "--disc-edges", str(1 + 0.5 * s), "--seed", str(s)],
+                                      capture_output=True, text=True)
+                if done.returncode != 0:
+                    sys.exit(f"weld_bench failed on {name}-{sid}, {s} bridges:\n{done.stderr}")
+                with open(os.path.join(run, "report.csv"), newline="") as fh:
+                    made = next(csv.DictReader(fh))["bridges_made"]
                 new = f"{'topo' if tr == 'topology' else 'isotopo'}{s}"
                 path = f"meshes/{name}-{new}.obj"
                 os.replace(os.path.join(run, "meshes", f"{name}-weld{s}-{sid}.obj"),
@@ -260,7 +267,10 @@ def main():
     for name in names:
         build(src, out, name, rows)
     with open(os.path.join(out, "manifest.csv"), "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()), lineterminator="\n")
+        fields = ["id", "path", "class", "transform", "strength", "source_pose"]
+        fields += [k for r in rows for k in r if k not in fields]
+        w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(fields)), lineterminator="\n",
+                           restval="")
         w.writeheader()
         w.writerows(rows)
     print(f"{len(rows)} shapes -> {out}/manifest.csv", file=sys.stderr)

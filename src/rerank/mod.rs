@@ -49,7 +49,7 @@ pub enum Fusion {
 /// Spectral Gromov–Wasserstein re-ranking of the top `shortlist` results.
 ///
 /// Default (the best measured on bench/dev, `docs/quality.md`): top 20, 100 samples, diffusion
-/// distances at t = 0.016, 0.04, 0.1 (the default configuration's times), ε = 0.003, 5 outer
+/// distances at t = 0.016, 0.04, 0.1 (the three small default scales), ε = 0.003, 5 outer
 /// iterations, GW alone.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct SgwStage {

@@ -101,7 +101,7 @@ impl App {
     /// Reads every stored signature once, page by page: a stale or unreadable one is recomputed
     /// from the stored original and written back; each of this node's shapes is encoded under
     /// the stored calibration seen before reading (if any) and its signature dropped, except
-    /// those the calibration sample keeps ([`super::sample`]). So a load holds ≈ 3.4 KB per shape
+    /// those the calibration sample keeps ([`super::sample`]). So a load holds ≈ 3.9 KB per shape
     /// plus at most `calibration_sample` signatures, not every signature at once.
     fn load_signatures(&self) -> crate::Result<Loaded> {
         use rayon::prelude::*;

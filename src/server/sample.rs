@@ -2,14 +2,15 @@
 //!
 //! A calibration (`ranking::calibrate`: per channel, the percentile of the pooled distance
 //! distributions of the corpus) reads every shape's whole signature — its quantile sketches,
-//! ≈ 50 KB — and holds them all while it computes: 5 GB at 100 000 shapes, 50 GB at a million,
-//! where the scan itself keeps 3.4 KB per shape. Up to `calibration_sample` shapes (10 000 by
-//! default) it is still computed on every one; above, on a sample of that many: the shapes with
-//! the smallest content hashes (the SHA-256 of the upload). Content hashes are spread uniformly
-//! and do not depend on ids, arrival order or the backend, so every node — whole-corpus or
-//! shard, PostgreSQL or sled — that holds the same uploads picks the same shapes, and a shape
-//! added or deleted changes at most one member. The members are calibrated on in id order, the
-//! order the whole corpus is taken in below the limit.
+//! ≈ 58 KB with the default's seven channels — and holds them all while it computes: 6 GB at
+//! 100 000 shapes, 60 GB at a million, where the scan itself keeps ≈ 3.9 KB per shape. Up to
+//! `calibration_sample` shapes (10 000 by default) it is still computed on every one; above, on
+//! a sample of that many: the shapes with the smallest content hashes (the SHA-256 of the
+//! upload). Content hashes are spread uniformly and do not depend on ids, arrival order or the
+//! backend, so every node — whole-corpus or shard, PostgreSQL or sled — that holds the same
+//! uploads picks the same shapes, and a shape added or deleted changes at most one member. The
+//! members are calibrated on in id order, the order the whole corpus is taken in below the
+//! limit.
 //!
 //! The 95th percentile of a pooled distribution over 10 000 shapes differs from the whole
 //! corpus's by sampling error only (each shape contributes a whole distribution of distances);
