@@ -136,9 +136,18 @@ async fn timeout_mw(
 ) -> Response {
     req.extensions_mut().insert(Deadline(Instant::now() + t));
     // On timeout the handler's future is dropped, which trips the cancellation token of the
-    // CPU job it was waiting for.
+    // CPU job it was waiting for. The job checks the same deadline, so under load it can see it
+    // pass first and answer its own 503 `request.timeout`: every 503 leaves with `Retry-After`.
     match tokio::time::timeout(t, next.run(req)).await {
-        Ok(r) => r,
+        Ok(mut r) => {
+            if r.status() == StatusCode::SERVICE_UNAVAILABLE
+                && !r.headers().contains_key(header::RETRY_AFTER)
+            {
+                r.headers_mut()
+                    .insert(header::RETRY_AFTER, HeaderValue::from(retry_after));
+            }
+            r
+        }
         Err(_) => {
             metrics::counter!("shapeseek_requests_timed_out_total").increment(1);
             let mut e = ApiError::new(
@@ -311,4 +320,52 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
         join,
         grace,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tower::ServiceExt;
+
+    async fn through_timeout_layer(handler_503: ApiError) -> Response {
+        let app = Router::new()
+            .route("/", get(move || async move { handler_503 }))
+            .layer(middleware::from_fn_with_state(
+                (Duration::from_secs(60), 2u64),
+                timeout_mw,
+            ));
+        app.oneshot(
+            Request::builder()
+                .uri("/")
+                .body(axum::body::Body::empty())
+                .unwrap(),
+        )
+        .await
+        .unwrap()
+    }
+
+    /// A job checks the request's deadline itself and, under load, can see it pass before the
+    /// timeout layer fires; its own 503 `request.timeout` still leaves with `Retry-After` (seen
+    /// without it in tests/reliability.rs's abandoned search on a loaded machine). A 503 that
+    /// carries one keeps it.
+    #[tokio::test]
+    async fn every_503_leaves_with_retry_after() {
+        let own = ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "request.timeout",
+            "the request was abandoned",
+        );
+        let r = through_timeout_layer(own).await;
+        assert_eq!(r.status(), StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(r.headers()[header::RETRY_AFTER], "2");
+        let r = through_timeout_layer(ApiError::busy(7)).await;
+        assert_eq!(r.headers()[header::RETRY_AFTER], "7");
+        let r = through_timeout_layer(ApiError::new(
+            StatusCode::NOT_FOUND,
+            "route.not_found",
+            "no such route",
+        ))
+        .await;
+        assert!(!r.headers().contains_key(header::RETRY_AFTER));
+    }
 }
