@@ -30,21 +30,16 @@ fn analysis_of(mesh: &Mesh, k: usize, normalize_area: bool) -> Analysis {
     analyze(mesh, &opts).expect("analysis")
 }
 
-fn heat6() -> Vec<ChannelSpec> {
-    DEFAULT_HEAT_SCALES
+/// Heat-L2 channels at `times`, in that order.
+fn heat_at(times: &[f64]) -> Vec<ChannelSpec> {
+    times
         .iter()
         .map(|&t| ChannelSpec::heat(t, Norm::L2))
         .collect()
 }
 
-/// Heat-L2 channels at `times`, in that order.
-fn heat_at(times: &[f64]) -> SignatureSpec {
-    SignatureSpec::with_channels(
-        times
-            .iter()
-            .map(|&t| ChannelSpec::heat(t, Norm::L2))
-            .collect(),
-    )
+fn heat6() -> Vec<ChannelSpec> {
+    heat_at(&DEFAULT_HEAT_SCALES)
 }
 
 fn nl1(a: &[f64], b: &[f64]) -> f64 {
@@ -170,7 +165,7 @@ fn quadrature_errors(specs: &[(&str, SignatureSpec)], times: &[f64]) -> Vec<(f64
 fn quadrature_and_sketch_errors_against_exact_all_pairs() {
     // Own window: sketch < 0.002, quadrature < 0.02; other windows: the bars given.
     let check = |times: &[f64], sketch_other: f64, quadrature_other: f64| {
-        let default = heat_at(times);
+        let default = SignatureSpec::with_channels(heat_at(times));
         let mut exact = default.clone();
         exact.quadrature = PairQuadrature::AllVertices;
         let w = quadrature_errors(&[("exact", exact), ("default", default)], times);
