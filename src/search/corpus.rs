@@ -13,17 +13,17 @@
 //!   KL weighs the smallest bins most). An empty histogram is all zeros;
 //! * the in-window mass `M` (one `f64`), from which the densities follow:
 //!   `f_b = M · a_b / (T_s · h)`, and the cumulative sums are running sums of the counts;
-//! * the sums of the counts over groups of [`GROUP_BINS`] bins at the common scale
+//! * the sums of the counts over [`GROUPS`] groups of adjacent bins at the common scale
 //!   `T_max = TOTAL · 2^MAX_SHIFT` (`u32`: `Σ_{b∈g} a_b · 2^{MAX_SHIFT − s}`, exact), the first
 //!   level of the lower bounds of [`super::prune`], comparable across shapes without a shift.
 //!
 //! Vector channels (ShapeDNA) are kept as `f64` vectors; a channel a shape lacks is marked
 //! absent. A shape with a second cut version ([`crate::signature::Signature::alternate`]) keeps
-//! it as a second [`Encoded`] beside its row, boxed (8 bytes per shape without one: the
-//! default gives one to the few shapes whose short loops its first cut leaves). Per channel,
-//! 256 bins cost 512 bytes of counts, 32 of group sums, 8 of mass and 1 of exponent (553; the
-//! default's seven channels: 3 871 per shape): the three `f64` arrays per bin they replace cost
-//! 6 144.
+//! it as a row of a second set of the same flat arrays, in position order, and every shape
+//! the row of its second version (4 bytes per shape; the default gives one to the shapes whose
+//! short loops its first cut leaves). Per channel, 256 bins cost 512 bytes of counts, 32 of
+//! group sums, 8 of mass and 1 of exponent (553; the default's seven channels: 3 871 per
+//! version): the three `f64` arrays per bin they replace cost 6 144.
 //!
 //! [`Encoded`] is one shape in the same encoding (a query, or a row being inserted); a
 //! [`ShapeRef`] views either.
@@ -46,8 +46,9 @@ pub fn total_at(s: u8) -> f64 {
     ((TOTAL as u64) << s) as f64
 }
 
-/// Bins per group of the bound table (the last group of a channel may be shorter).
-pub const GROUP_BINS: usize = 32;
+/// Groups per histogram of the bound table: a layout's groups are `bins / GROUPS` bins wide
+/// (rounded up; the last group of a channel may be shorter), 32 for the paper's 256 bins.
+pub const GROUPS: usize = 8;
 
 /// Where a channel's values live.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -71,7 +72,9 @@ pub struct Layout {
     pub bin_width: Vec<f64>,
     /// Bins per histogram.
     pub bins: usize,
-    /// Groups per histogram (`bins / GROUP_BINS`, rounded up).
+    /// Bins per group of the bound table (`bins / GROUPS`, rounded up).
+    pub group_bins: usize,
+    /// Groups per histogram (`bins / group_bins`, rounded up: at most [`GROUPS`]).
     pub groups: usize,
 }
 
@@ -102,7 +105,8 @@ impl Layout {
             slots,
             bin_width,
             bins,
-            groups: bins.div_ceil(GROUP_BINS),
+            group_bins: bins.div_ceil(GROUPS),
+            groups: bins.div_ceil(bins.div_ceil(GROUPS)),
         }
     }
 
@@ -123,7 +127,7 @@ impl Layout {
 
     /// Bins in group `g`.
     pub fn group_width(&self, g: usize) -> usize {
-        GROUP_BINS.min(self.bins - g * GROUP_BINS)
+        self.group_bins.min(self.bins - g * self.group_bins)
     }
 
     /// True when `e` has this layout's array lengths, and so has its second version, which has
@@ -233,9 +237,10 @@ pub struct Encoded {
     pub alt: Option<Box<Encoded>>,
 }
 
-/// A view of one shape, in the corpus or an [`Encoded`].
+/// One version of a shape (its first, or its second cut version): the arrays, no second
+/// version of its own.
 #[derive(Clone, Copy, Debug)]
-pub struct ShapeRef<'a> {
+pub struct VersionRef<'a> {
     /// Counts, `[histogram channel][bin]`.
     pub hist: &'a [u16],
     /// Scale exponent per histogram channel.
@@ -248,17 +253,32 @@ pub struct ShapeRef<'a> {
     pub present: &'a [bool],
     /// Vectors per vector channel.
     pub vectors: &'a [Vec<f64>],
+}
+
+/// A view of one shape, in the corpus or an [`Encoded`]: its first version (the fields, by
+/// `Deref`) and its second cut version if it has one.
+#[derive(Clone, Copy, Debug)]
+pub struct ShapeRef<'a> {
+    /// The first version.
+    pub first: VersionRef<'a>,
     /// The second cut version, if the shape has one.
-    pub alt: Option<&'a Encoded>,
+    pub alt: Option<VersionRef<'a>>,
+}
+
+impl<'a> std::ops::Deref for ShapeRef<'a> {
+    type Target = VersionRef<'a>;
+    fn deref(&self) -> &VersionRef<'a> {
+        &self.first
+    }
 }
 
 impl<'a> ShapeRef<'a> {
     /// The second version's view, or this one when there is none: the version a pair's
     /// second comparison uses ([`super::score::Query::score`]).
     pub fn second(self) -> ShapeRef<'a> {
-        match self.alt {
-            Some(e) => e.view(),
-            None => self,
+        ShapeRef {
+            first: self.alt.unwrap_or(self.first),
+            alt: None,
         }
     }
 }
@@ -337,7 +357,7 @@ impl Encoded {
         for k in 0..layout.histograms() {
             let row = &self.hist[k * layout.bins..(k + 1) * layout.bins];
             let up = MAX_SHIFT - self.shift[k].min(MAX_SHIFT);
-            for (g, chunk) in row.chunks(GROUP_BINS).enumerate() {
+            for (g, chunk) in row.chunks(layout.group_bins).enumerate() {
                 let s: u64 = chunk.iter().map(|&x| (x as u64) << up).sum();
                 self.groups[k * layout.groups + g] = s.min(u32::MAX as u64) as u32;
             }
@@ -347,21 +367,28 @@ impl Encoded {
     /// A view.
     pub fn view(&self) -> ShapeRef<'_> {
         ShapeRef {
+            first: self.version(),
+            alt: self.alt.as_deref().map(Encoded::version),
+        }
+    }
+
+    /// This version's arrays (its second version, if any, not included).
+    fn version(&self) -> VersionRef<'_> {
+        VersionRef {
             hist: &self.hist,
             shift: &self.shift,
             groups: &self.groups,
             mass: &self.mass,
             present: &self.present,
             vectors: &self.vectors,
-            alt: self.alt.as_deref(),
         }
     }
 }
 
-/// Every shape of a corpus in one layout, shape-major, positions `0..len`.
-#[derive(Clone, Debug)]
-pub struct Corpus {
-    layout: Layout,
+/// Rows of one layout in flat arrays, row-major: the first versions of a corpus, or its
+/// second versions.
+#[derive(Clone, Debug, Default)]
+struct Rows {
     len: usize,
     hist: Vec<u16>,
     shift: Vec<u8>,
@@ -369,8 +396,100 @@ pub struct Corpus {
     mass: Vec<f64>,
     present: Vec<bool>,
     vectors: Vec<Vec<f64>>,
-    /// Second versions, one entry per shape.
-    alts: Vec<Option<Box<Encoded>>>,
+}
+
+/// Per-row lengths of [`Rows`]' arrays: histogram counts, group sums, histogram channels,
+/// channels, vector channels.
+fn strides(l: &Layout) -> [usize; 5] {
+    [
+        l.histograms() * l.bins,
+        l.histograms() * l.groups,
+        l.histograms(),
+        l.names.len(),
+        l.vectors(),
+    ]
+}
+
+impl Rows {
+    fn reserve_exact(&mut self, l: &Layout, n: usize) {
+        let [h, g, m, p, v] = strides(l);
+        self.hist.reserve_exact(n * h);
+        self.shift.reserve_exact(n * m);
+        self.groups.reserve_exact(n * g);
+        self.mass.reserve_exact(n * m);
+        self.present.reserve_exact(n * p);
+        self.vectors.reserve_exact(n * v);
+    }
+
+    fn get(&self, l: &Layout, at: usize) -> VersionRef<'_> {
+        let [h, g, m, p, v] = strides(l);
+        VersionRef {
+            hist: &self.hist[at * h..(at + 1) * h],
+            shift: &self.shift[at * m..(at + 1) * m],
+            groups: &self.groups[at * g..(at + 1) * g],
+            mass: &self.mass[at * m..(at + 1) * m],
+            present: &self.present[at * p..(at + 1) * p],
+            vectors: &self.vectors[at * v..(at + 1) * v],
+        }
+    }
+
+    /// Inserts the arrays of `e` (not its second version) as row `at`.
+    fn insert(&mut self, l: &Layout, at: usize, e: &Encoded) {
+        let [h, g, m, p, v] = strides(l);
+        splice(&mut self.hist, at * h, &e.hist);
+        splice(&mut self.shift, at * m, &e.shift);
+        splice(&mut self.groups, at * g, &e.groups);
+        splice(&mut self.mass, at * m, &e.mass);
+        splice(&mut self.present, at * p, &e.present);
+        splice(&mut self.vectors, at * v, &e.vectors);
+        self.len += 1;
+    }
+
+    fn replace(&mut self, l: &Layout, at: usize, e: &Encoded) {
+        let [h, g, m, p, v] = strides(l);
+        self.hist[at * h..(at + 1) * h].copy_from_slice(&e.hist);
+        self.shift[at * m..(at + 1) * m].copy_from_slice(&e.shift);
+        self.groups[at * g..(at + 1) * g].copy_from_slice(&e.groups);
+        self.mass[at * m..(at + 1) * m].copy_from_slice(&e.mass);
+        self.present[at * p..(at + 1) * p].copy_from_slice(&e.present);
+        self.vectors[at * v..(at + 1) * v].clone_from_slice(&e.vectors);
+    }
+
+    fn remove(&mut self, l: &Layout, at: usize) {
+        let [h, g, m, p, v] = strides(l);
+        self.hist.drain(at * h..(at + 1) * h);
+        self.shift.drain(at * m..(at + 1) * m);
+        self.groups.drain(at * g..(at + 1) * g);
+        self.mass.drain(at * m..(at + 1) * m);
+        self.present.drain(at * p..(at + 1) * p);
+        self.vectors.drain(at * v..(at + 1) * v);
+        self.len -= 1;
+    }
+
+    fn heap_bytes(&self) -> usize {
+        arrays_bytes(
+            &self.hist,
+            &self.shift,
+            &self.groups,
+            &self.mass,
+            &self.present,
+            &self.vectors,
+        )
+    }
+}
+
+/// No second version (an entry of [`Corpus`]'s `alt_of`).
+const NO_ALT: u32 = u32::MAX;
+
+/// Every shape of a corpus in one layout, shape-major, positions `0..len`: the first versions
+/// in one set of flat arrays, the second versions in another (in position order), and per
+/// shape the row of its second version or [`NO_ALT`] (4 bytes per shape).
+#[derive(Clone, Debug)]
+pub struct Corpus {
+    layout: Layout,
+    first: Rows,
+    alts: Rows,
+    alt_of: Vec<u32>,
 }
 
 impl Corpus {
@@ -378,34 +497,26 @@ impl Corpus {
     pub fn new(layout: Layout) -> Corpus {
         Corpus {
             layout,
-            len: 0,
-            hist: Vec::new(),
-            shift: Vec::new(),
-            groups: Vec::new(),
-            mass: Vec::new(),
-            present: Vec::new(),
-            vectors: Vec::new(),
-            alts: Vec::new(),
+            first: Rows::default(),
+            alts: Rows::default(),
+            alt_of: Vec::new(),
         }
     }
 
-    /// An empty corpus with room for `n` shapes (allocated exactly once).
+    /// An empty corpus with room for `n` shapes (allocated exactly once; the second versions'
+    /// arrays grow as they come).
     pub fn with_capacity(layout: Layout, n: usize) -> Corpus {
         let mut c = Corpus::new(layout);
-        let l = &c.layout;
-        c.hist.reserve_exact(n * l.histograms() * l.bins);
-        c.shift.reserve_exact(n * l.histograms());
-        c.groups.reserve_exact(n * l.histograms() * l.groups);
-        c.mass.reserve_exact(n * l.histograms());
-        c.present.reserve_exact(n * l.names.len());
-        c.vectors.reserve_exact(n * l.vectors());
-        c.alts.reserve_exact(n);
+        c.first.reserve_exact(&c.layout, n);
+        c.alt_of.reserve_exact(n);
         c
     }
 
     /// A corpus of `shapes` in order.
     pub fn build(layout: Layout, shapes: &[Encoded]) -> Corpus {
         let mut c = Corpus::with_capacity(layout, shapes.len());
+        let alts = shapes.iter().filter(|e| e.alt.is_some()).count();
+        c.alts.reserve_exact(&c.layout, alts);
         for e in shapes {
             c.push(e);
         }
@@ -419,75 +530,70 @@ impl Corpus {
 
     /// Number of shapes.
     pub fn len(&self) -> usize {
-        self.len
+        self.first.len
     }
 
     /// True when empty.
     pub fn is_empty(&self) -> bool {
-        self.len == 0
-    }
-
-    fn strides(&self) -> [usize; 5] {
-        let l = &self.layout;
-        [
-            l.histograms() * l.bins,
-            l.histograms() * l.groups,
-            l.histograms(),
-            l.names.len(),
-            l.vectors(),
-        ]
+        self.first.len == 0
     }
 
     /// The shape at `at`.
     pub fn shape(&self, at: usize) -> ShapeRef<'_> {
-        let [h, g, m, p, v] = self.strides();
         ShapeRef {
-            hist: &self.hist[at * h..(at + 1) * h],
-            shift: &self.shift[at * m..(at + 1) * m],
-            groups: &self.groups[at * g..(at + 1) * g],
-            mass: &self.mass[at * m..(at + 1) * m],
-            present: &self.present[at * p..(at + 1) * p],
-            vectors: &self.vectors[at * v..(at + 1) * v],
-            alt: self.alts[at].as_deref(),
+            first: self.first.get(&self.layout, at),
+            alt: self.alt(at),
+        }
+    }
+
+    /// The second version of the shape at `at`, if it has one.
+    pub(crate) fn alt(&self, at: usize) -> Option<VersionRef<'_>> {
+        match self.alt_of[at] {
+            NO_ALT => None,
+            j => Some(self.alts.get(&self.layout, j as usize)),
         }
     }
 
     /// A copy of the shape at `at`.
     pub fn encoded(&self, at: usize) -> Encoded {
         let s = self.shape(at);
+        let copy = |v: VersionRef<'_>| Encoded {
+            hist: v.hist.to_vec(),
+            shift: v.shift.to_vec(),
+            groups: v.groups.to_vec(),
+            mass: v.mass.to_vec(),
+            present: v.present.to_vec(),
+            vectors: v.vectors.to_vec(),
+            alt: None,
+        };
         Encoded {
-            hist: s.hist.to_vec(),
-            shift: s.shift.to_vec(),
-            groups: s.groups.to_vec(),
-            mass: s.mass.to_vec(),
-            present: s.present.to_vec(),
-            vectors: s.vectors.to_vec(),
-            alt: s.alt.map(|e| Box::new(e.clone())),
+            alt: s.alt.map(|a| Box::new(copy(a))),
+            ..copy(s.first)
         }
     }
 
-    /// Positions `range` that have a second version (the corpus's few; read by the bounds of
+    /// Positions `range` that have a second version (read by the bounds of
     /// [`super::prune`]).
     pub(crate) fn alts_in(
         &self,
         range: std::ops::Range<usize>,
     ) -> impl Iterator<Item = usize> + '_ {
         let base = range.start;
-        self.alts[range]
+        self.alt_of[range]
             .iter()
             .enumerate()
-            .filter(|(_, a)| a.is_some())
+            .filter(|(_, &a)| a != NO_ALT)
             .map(move |(j, _)| base + j)
     }
 
     /// In-window mass of histogram slot `k` of the shape at `at`.
     pub(crate) fn mass_of(&self, at: usize, k: usize) -> f64 {
-        self.mass[at * self.layout.histograms() + k]
+        self.first.mass[at * self.layout.histograms() + k]
     }
 
-    /// Group sums of every shape (`[shape][histogram channel][group]`).
+    /// Group sums of every shape's first version (`[shape][histogram channel][group]`).
     pub(crate) fn all_groups(&self) -> &[u32] {
-        &self.groups
+        &self.first.groups
     }
 
     fn check(&self, e: &Encoded) {
@@ -497,70 +603,97 @@ impl Corpus {
         );
     }
 
+    /// The row the second version of a shape at `at` takes: the number of shapes before `at`
+    /// that have one (second versions are kept in position order).
+    fn alt_row(&self, at: usize) -> usize {
+        self.alt_of[..at].iter().filter(|&&a| a != NO_ALT).count()
+    }
+
+    /// Adds `delta` to every second-version row after shape `at`.
+    fn shift_alt_rows(&mut self, at: usize, delta: i64) {
+        for a in self.alt_of[at + 1..].iter_mut().filter(|a| **a != NO_ALT) {
+            *a = (*a as i64 + delta) as u32;
+        }
+    }
+
     /// Appends a shape.
     pub fn push(&mut self, e: &Encoded) {
-        self.insert(self.len, e);
+        self.insert(self.len(), e);
     }
 
     /// Inserts a shape at `at` (shifting the following ones).
     pub fn insert(&mut self, at: usize, e: &Encoded) {
-        assert!(at <= self.len, "insert position {at} > len {}", self.len);
+        assert!(
+            at <= self.len(),
+            "insert position {at} > len {}",
+            self.len()
+        );
         self.check(e);
-        let [h, g, m, p, v] = self.strides();
-        splice(&mut self.hist, at * h, &e.hist);
-        splice(&mut self.shift, at * m, &e.shift);
-        splice(&mut self.groups, at * g, &e.groups);
-        splice(&mut self.mass, at * m, &e.mass);
-        splice(&mut self.present, at * p, &e.present);
-        splice(&mut self.vectors, at * v, &e.vectors);
-        self.alts.insert(at, e.alt.clone());
-        self.len += 1;
+        self.first.insert(&self.layout, at, e);
+        let row = match &e.alt {
+            Some(a) => {
+                let j = if at == self.alt_of.len() {
+                    self.alts.len
+                } else {
+                    self.alt_row(at)
+                };
+                assert!(j < NO_ALT as usize, "too many second versions");
+                self.alts.insert(&self.layout, j, a);
+                j as u32
+            }
+            None => NO_ALT,
+        };
+        self.alt_of.insert(at, row);
+        if row != NO_ALT {
+            self.shift_alt_rows(at, 1);
+        }
     }
 
     /// Replaces the shape at `at`.
     pub fn replace(&mut self, at: usize, e: &Encoded) {
-        assert!(at < self.len, "replace position {at} >= len {}", self.len);
+        assert!(
+            at < self.len(),
+            "replace position {at} >= len {}",
+            self.len()
+        );
         self.check(e);
-        let [h, g, m, p, v] = self.strides();
-        self.hist[at * h..(at + 1) * h].copy_from_slice(&e.hist);
-        self.shift[at * m..(at + 1) * m].copy_from_slice(&e.shift);
-        self.groups[at * g..(at + 1) * g].copy_from_slice(&e.groups);
-        self.mass[at * m..(at + 1) * m].copy_from_slice(&e.mass);
-        self.present[at * p..(at + 1) * p].copy_from_slice(&e.present);
-        self.vectors[at * v..(at + 1) * v].clone_from_slice(&e.vectors);
-        self.alts[at] = e.alt.clone();
+        self.first.replace(&self.layout, at, e);
+        match (self.alt_of[at], e.alt.as_deref()) {
+            (NO_ALT, None) => {}
+            (NO_ALT, Some(a)) => {
+                let j = self.alt_row(at);
+                self.alts.insert(&self.layout, j, a);
+                self.alt_of[at] = j as u32;
+                self.shift_alt_rows(at, 1);
+            }
+            (j, Some(a)) => self.alts.replace(&self.layout, j as usize, a),
+            (j, None) => {
+                self.alts.remove(&self.layout, j as usize);
+                self.alt_of[at] = NO_ALT;
+                self.shift_alt_rows(at, -1);
+            }
+        }
     }
 
     /// Removes the shape at `at`.
     pub fn remove(&mut self, at: usize) {
-        assert!(at < self.len, "remove position {at} >= len {}", self.len);
-        let [h, g, m, p, v] = self.strides();
-        self.hist.drain(at * h..(at + 1) * h);
-        self.shift.drain(at * m..(at + 1) * m);
-        self.groups.drain(at * g..(at + 1) * g);
-        self.mass.drain(at * m..(at + 1) * m);
-        self.present.drain(at * p..(at + 1) * p);
-        self.vectors.drain(at * v..(at + 1) * v);
-        self.alts.remove(at);
-        self.len -= 1;
+        assert!(
+            at < self.len(),
+            "remove position {at} >= len {}",
+            self.len()
+        );
+        self.first.remove(&self.layout, at);
+        let j = self.alt_of[at];
+        if j != NO_ALT {
+            self.alts.remove(&self.layout, j as usize);
+            self.shift_alt_rows(at, -1);
+        }
+        self.alt_of.remove(at);
     }
 
     /// Heap bytes held (capacity of the arrays, vectors' contents included).
     pub fn heap_bytes(&self) -> usize {
-        arrays_bytes(
-            &self.hist,
-            &self.shift,
-            &self.groups,
-            &self.mass,
-            &self.present,
-            &self.vectors,
-        ) + self.alts.capacity() * std::mem::size_of::<Option<Box<Encoded>>>()
-            + self
-                .alts
-                .iter()
-                .flatten()
-                .map(|a| a.heap_bytes())
-                .sum::<usize>()
+        self.first.heap_bytes() + self.alts.heap_bytes() + self.alt_of.capacity() * 4
     }
 }
 

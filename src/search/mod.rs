@@ -22,7 +22,7 @@ pub mod prune;
 pub mod score;
 pub mod stage;
 
-pub use corpus::{Corpus, Encoded, Layout, ShapeRef};
+pub use corpus::{Corpus, Encoded, Layout, ShapeRef, VersionRef};
 pub use prune::{rank_all, top_k};
 pub use score::Query;
 pub use stage::{run, Entry, Env, Stage, StageRequest};

@@ -1,7 +1,8 @@
 //! Exact top-k over a [`Corpus`] by filter-and-refine.
 //!
 //! Scoring a candidate exactly reads all its counts (`bins` per channel). The corpus also keeps
-//! every histogram's sums over groups of [`GROUP_BINS`] bins, from which a **lower bound** of
+//! every histogram's sums over [`GROUPS`](super::corpus::GROUPS) groups of adjacent bins, from
+//! which a **lower bound** of
 //! each of the nine dissimilarities follows (the GEMINI scheme of Faloutsos et al. 1994, with
 //! a bound specific to each dissimilarity). The bounds of every candidate are computed in one
 //! pass over the group sums (two for a query with a second cut version, below); candidates
@@ -44,7 +45,7 @@
 //! against the candidate's second version (its own group sums, read per candidate: the few
 //! shapes whose short loops the first cut leaves) for a candidate that has one.
 
-use super::corpus::{total_at, Corpus, ShapeRef, Slot, GROUP_BINS, MAX_SHIFT};
+use super::corpus::{total_at, Corpus, Layout, ShapeRef, Slot, VersionRef, MAX_SHIFT};
 use super::score::Query;
 use crate::ranking::{Dissimilarity, BHATTACHARYYA_FLOOR, KL_EPSILON};
 use crate::signature::Aggregation;
@@ -323,7 +324,7 @@ impl<'a> Bounder<'a> {
             nl1_row,
             second: query
                 .alt
-                .map(|e| Box::new(Bounder::new(corpus, q, e.view()))),
+                .map(|_| Box::new(Bounder::new(corpus, q, query.second()))),
         }
     }
 
@@ -341,12 +342,8 @@ impl<'a> Bounder<'a> {
             .alts_in(base..base + out.len())
             .filter(|&i| !out[i - base].is_nan())
             .map(|i| {
-                let alt = self
-                    .corpus
-                    .shape(i)
-                    .alt
-                    .expect("listed with a second version");
-                let second = query_second.bound_against(alt.view());
+                let alt = self.corpus.alt(i).expect("listed with a second version");
+                let second = query_second.bound_against(alt);
                 (i, out[i - base].min(f * second))
             })
             .collect();
@@ -398,7 +395,7 @@ impl<'a> Bounder<'a> {
 
     /// A lower bound of the score of this version of the query against the shape version `c`
     /// (a candidate's second version), from `c`'s own group sums.
-    fn bound_against(&self, c: ShapeRef<'_>) -> f64 {
+    fn bound_against(&self, c: VersionRef<'_>) -> f64 {
         self.bound_of(c.groups, |k| c.mass[k])
     }
 
@@ -424,8 +421,7 @@ impl<'a> Bounder<'a> {
                             .sum();
                         s as f64 / total_at(MAX_SHIFT)
                     } else {
-                        let v =
-                            channel_bound(d, &qc.groups, qc.mass, g, mass(qc.slot), qc.h, l.bins);
+                        let v = channel_bound(d, &qc.groups, qc.mass, g, mass(qc.slot), qc.h, l);
                         if v.is_nan() {
                             0.0
                         } else {
@@ -498,7 +494,7 @@ pub(crate) fn with_margin(b: f64) -> f64 {
 }
 
 /// Lower bound of dissimilarity `d` from the group sums `a` (query, mass `ma`) and `b`
-/// (candidate, mass `mb`), bin width `h`, `bins` bins (see the module docs).
+/// (candidate, mass `mb`), bin width `h`, the bins and groups of `layout` (see the module docs).
 pub(crate) fn channel_bound(
     d: Dissimilarity,
     a: &[u32],
@@ -506,10 +502,10 @@ pub(crate) fn channel_bound(
     b: &[u32],
     mb: f64,
     h: f64,
-    bins: usize,
+    layout: &Layout,
 ) -> f64 {
     let t = total_at(MAX_SHIFT);
-    let w = |g: usize| GROUP_BINS.min(bins - g * GROUP_BINS) as f64;
+    let w = |g: usize| layout.group_width(g) as f64;
     let pairs = || a.iter().zip(b).map(|(&x, &y)| (x as i64, y as i64));
     let (fa, fb) = (ma / t, mb / t);
     let dens = || {

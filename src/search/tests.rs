@@ -1,6 +1,6 @@
 //! Tests of [`crate::search`] (`cargo test --release --lib search`).
 
-use super::corpus::{quantise, total_at, Slot, GROUP_BINS, TOTAL};
+use super::corpus::{quantise, total_at, Slot, GROUPS, TOTAL};
 use super::prune::{channel_bound, search, with_margin};
 use super::score::{histogram, Counts};
 use super::*;
@@ -70,9 +70,14 @@ fn counts(e: &Encoded) -> Counts<'_> {
     }
 }
 
+/// The layout of [`encode`]'s histograms.
+fn single(bins: usize, width: f64) -> Layout {
+    layout(&["a"], bins, width * bins as f64)
+}
+
 /// One encoded single-channel histogram and its group sums.
 fn encode(mass: &[f64], width: f64) -> Encoded {
-    let l = layout(&["a"], mass.len(), width * mass.len() as f64);
+    let l = single(mass.len(), width);
     let p = prepared(
         &["a"],
         vec![Some(PreparedChannel::Histogram(hist(mass, width)))],
@@ -119,7 +124,7 @@ proptest! {
         for d in Dissimilarity::all() {
             let exact = histogram(d, counts(&ea), counts(&eb), width);
             let bound = with_margin(channel_bound(
-                d, &ea.groups, ea.mass[0], &eb.groups, eb.mass[0], width, a.len(),
+                d, &ea.groups, ea.mass[0], &eb.groups, eb.mass[0], width, &single(a.len(), width),
             ));
             prop_assert!(bound >= 0.0);
             prop_assert!(bound <= exact, "{d:?}: bound {bound} > exact {exact}");
@@ -231,7 +236,15 @@ fn a_raised_bound_fails() {
         Dissimilarity::Bhattacharyya,
     ] {
         let exact = histogram(d, counts(&ea), counts(&eb), 0.1);
-        let bound = channel_bound(d, &ea.groups, ea.mass[0], &eb.groups, eb.mass[0], 0.1, 64);
+        let bound = channel_bound(
+            d,
+            &ea.groups,
+            ea.mass[0],
+            &eb.groups,
+            eb.mass[0],
+            0.1,
+            &single(64, 0.1),
+        );
         assert_eq!(bound, exact, "{d:?}");
         assert!(with_margin(bound) <= exact);
         assert!(bound * 1.001 > exact, "{d:?}: a raised bound would pass");
@@ -357,6 +370,40 @@ fn edits_match_a_rebuilt_corpus() {
     c.insert(1, &with_alt);
     arr.remove(0);
     c.remove(0);
+    // Random edits, half of the shapes with a second version: every kind of replacement
+    // (a second version added, removed, replaced) and edits before and after such shapes.
+    let mut r = 7u64;
+    let mut next = |n: usize| {
+        r = r
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (r >> 33) as usize % n
+    };
+    for step in 0..300 {
+        let mut e = p(0.05 * (step % 40) as f64 + 0.2);
+        if next(2) == 0 {
+            e.alt = Some(Box::new(p(0.03 * (step % 50) as f64 + 0.1)));
+        }
+        match next(4) {
+            0 | 1 => {
+                let at = next(arr.len() + 1);
+                arr.insert(at, e.clone());
+                c.insert(at, &e);
+            }
+            2 if !arr.is_empty() => {
+                let at = next(arr.len());
+                arr[at] = e.clone();
+                c.replace(at, &e);
+            }
+            _ if arr.len() > 1 => {
+                let at = next(arr.len());
+                arr.remove(at);
+                c.remove(at);
+            }
+            _ => {}
+        }
+    }
+    assert!(arr.iter().filter(|e| e.alt.is_some()).count() > 3);
     let rebuilt = Corpus::build(l, &arr);
     assert_eq!(c.len(), arr.len());
     for i in 0..arr.len() {
@@ -395,7 +442,7 @@ fn clustered_candidates_are_pruned() {
     let expected: Vec<(usize, f64)> = rank_all(&corpus, &q, corpus.shape(57))[..10].to_vec();
     assert_eq!(got, expected);
     assert!(scored < 1000, "scored {scored} of 4000");
-    assert_eq!(GROUP_BINS, 32);
+    assert_eq!((corpus.layout().group_bins, GROUPS), (32, 8));
 }
 
 /// Stages in the configuration form read what they wrote; `none` entries of a list are
