@@ -349,8 +349,19 @@ fn pooled_quantile(sketches: &[&QuantileSketch], p: f64) -> f64 {
     if hi0 <= 0.0 {
         return 1.0;
     }
-    let pooled =
-        |x: f64| sketches.iter().map(|s| sketch_cdf(s, x)).sum::<f64>() / sketches.len() as f64;
+    // The mean CDF, summed exactly in fixed point (each value to 2⁻⁵³), so that it does not
+    // depend on the order of the sketches: the bisection's last steps compare it with `p` at
+    // rounding level, and a cluster's nodes and shards pool the same shapes in other orders
+    // than a single node (a window differing in its last bits moves a count wherever two bins'
+    // remainders tie, as they do on symmetric shapes).
+    const ONE: f64 = (1u64 << 53) as f64;
+    let pooled = |x: f64| {
+        let sum: u128 = sketches
+            .iter()
+            .map(|s| (sketch_cdf(s, x).clamp(0.0, 1.0) * ONE).round() as u128)
+            .sum();
+        (sum as f64 / ONE) / sketches.len() as f64
+    };
     let (mut lo, mut hi) = (0.0, hi0);
     for _ in 0..200 {
         let mid = 0.5 * (lo + hi);

@@ -235,6 +235,45 @@ fn sig_with(name: &str, s: QuantileSketch) -> Signature {
     }
 }
 
+/// The windows are the same bits whatever the order of the signatures (a cluster's shards and
+/// nodes pool the same shapes in other orders than a single node does).
+#[test]
+fn calibration_does_not_depend_on_the_order() {
+    let spec = SignatureSpec::with_channels(vec![ChannelSpec::heat(0.1, Norm::L2)]);
+    let name = spec.channel_names()[0].clone();
+    // Uneven sketches: quantiles x_j = hi · (j/q)^e with hi and e varying per shape.
+    let sigs: Vec<Signature> = (0..200)
+        .map(|i| {
+            let hi = 0.7 + 0.013 * ((i * 37) % 101) as f64;
+            let e = 0.6 + 0.011 * ((i * 53) % 89) as f64;
+            let s = QuantileSketch {
+                mass: 1.0,
+                quantiles: (0..=64).map(|j| hi * (j as f64 / 64.0).powf(e)).collect(),
+            };
+            sig_with(&name, s)
+        })
+        .collect();
+    let forward: Vec<&Signature> = sigs.iter().collect();
+    let mut shuffled = forward.clone();
+    for p in [0.5, 0.9, 0.95, 0.99] {
+        let opts = CalibrationOptions {
+            percentile: p,
+            ..Default::default()
+        };
+        let base = calibrate_with(&forward, &spec, 1, &opts).window_max[0];
+        for round in 0..20u64 {
+            // A deterministic shuffle per round.
+            let n = shuffled.len();
+            for i in (1..n).rev() {
+                let j = ((i as u64 * 2654435761 + round * 97) % (i as u64 + 1)) as usize;
+                shuffled.swap(i, j);
+            }
+            let w = calibrate_with(&shuffled, &spec, 1, &opts).window_max[0];
+            assert_eq!(w.to_bits(), base.to_bits(), "percentile {p}, round {round}");
+        }
+    }
+}
+
 /// Pooled 95th percentile of uniform [0, 1] and uniform [0, 2], equally weighted:
 /// (1 + x/2)/2 = 0.95 → x = 1.8.
 #[test]
