@@ -2,12 +2,11 @@
 //!
 //! Scoring a candidate exactly reads all its counts (`bins` per channel). The corpus also keeps
 //! every histogram's sums over [`GROUPS`](super::corpus::GROUPS) groups of adjacent bins, from
-//! which a **lower bound** of
-//! each of the nine dissimilarities follows (the GEMINI scheme of Faloutsos et al. 1994, with
-//! a bound specific to each dissimilarity). The bounds of every candidate are computed in one
-//! pass over the group sums (two for a query with a second cut version, below); candidates
-//! are then scored exactly in order of increasing bound, and the scan stops as soon as the
-//! `k`-th best exact score is below every remaining bound.
+//! which a **lower bound** of each of the nine dissimilarities follows (the GEMINI scheme of
+//! Faloutsos et al. 1994, with a bound specific to each dissimilarity). The bounds of every
+//! candidate are computed in one pass over the group sums (two for a query with a second cut
+//! version, below); candidates are then scored exactly in order of increasing bound, and the scan
+//! stops as soon as the `k`-th best exact score is below every remaining bound.
 //!
 //! The result is **exactly** the head of [`rank_all`] restricted to the kept candidates: the
 //! same scores bit for bit (the exact score is [`Query::score`]) and the same order (score by
