@@ -32,7 +32,9 @@
 //!
 //! Small problems (or `k` close to `n`) use a dense symmetric eigensolver on
 //! `A^{-1/2} L A^{-1/2}` instead. Everything is deterministic for a given input: the start block
-//! comes from a fixed-seed generator and every parallel reduction has a fixed order.
+//! comes from a fixed-seed generator and every parallel reduction has a fixed order, the same whatever
+//! the number of threads (faer's kernels get a fixed degree, [`FAER_DEGREE`], and the block's
+//! solves are always split in two), so a result has the same bits on every machine.
 //!
 //! # Conventions
 //!
@@ -42,6 +44,9 @@
 //! is measured on the scale of λ_1 rather than divided by zero.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::evd::{
+    self_adjoint_evd, self_adjoint_evd_scratch, ComputeEigenvectors, EvdError,
+};
 use faer::linalg::matmul::matmul;
 use faer::reborrow::{Reborrow, ReborrowMut};
 use faer::sparse::linalg::cholesky::{
@@ -53,6 +58,16 @@ use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 use crate::{Error, Result};
+
+/// The degree of parallelism given to faer's kernels: a constant, not the pool's size, because
+/// faer splits its work — and so rounds — by the degree it is given. Rayon runs the parts on
+/// whatever threads the pool has (one after the other on one thread), so a result has the same
+/// bits on every machine: a cluster's workers and a single node store the same signature.
+const FAER_DEGREE: usize = 4;
+
+fn faer_par() -> Par {
+    Par::rayon(FAER_DEGREE)
+}
 
 /// No result is returned with a relative residual above this (or above the requested tolerance
 /// when that is looser).
@@ -276,7 +291,7 @@ pub fn relative_residuals(
             stiffness.as_ref(),
             vectors.subcols(start, len),
             1.0,
-            Par::rayon(0),
+            faer_par(),
         );
         for c in 0..len {
             let j = start + c;
@@ -330,12 +345,9 @@ fn dense_eigenpairs(
             m[(i, j)] += v * s_inv[i] * s_inv[j];
         }
     }
-    let evd = m
-        .self_adjoint_eigen(Side::Lower)
+    let (s, u) = symmetric_evd(m.as_ref())
         .map_err(|e| Error::Numerical(format!("dense eigensolver: {e:?}")))?;
-    let s = evd.S();
-    let u = evd.U();
-    let values: Vec<f64> = (0..k).map(|i| s.column_vector()[i]).collect();
+    let values: Vec<f64> = s[..k].to_vec();
     let mut vectors = Mat::<f64>::zeros(n, k);
     for j in 0..k {
         for i in 0..n {
@@ -386,7 +398,7 @@ impl ShiftInvert {
         )
         .map_err(|e| Error::Numerical(format!("symbolic Cholesky: {e:?}")))?;
         let mut values = vec![0.0f64; symbolic.len_val()];
-        let par = Par::rayon(0);
+        let par = faer_par();
         let mut mem = MemBuffer::try_new(
             symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()),
         )
@@ -427,10 +439,11 @@ impl ShiftInvert {
         }
     }
 
+    /// The two halves of the block are solved as two tasks whatever the pool's size (on one
+    /// thread, one after the other), so the rounding is the same on every machine.
     fn solve_split(&self, x: MatMut<'_, f64>) {
         let ncols = x.ncols();
-        let threads = rayon::current_num_threads().max(1);
-        if ncols >= 2 && threads >= 2 {
+        if ncols >= 2 {
             let half = ncols.div_ceil(2);
             let (left, right) = x.split_at_col_mut(half);
             rayon::join(|| self.solve_seq(left), || self.solve_seq(right));
@@ -601,6 +614,82 @@ fn upper_inverse(r: &Mat<f64>) -> Mat<f64> {
     inv
 }
 
+/// Eigenvalues (ascending) and eigenvectors of the symmetric `a` (its lower triangle), by
+/// faer's dense solver at [`faer_par`] (`Mat::self_adjoint_eigen` would take the global
+/// parallelism, the pool's size).
+fn symmetric_evd(a: MatRef<'_, f64>) -> std::result::Result<(Vec<f64>, Mat<f64>), EvdError> {
+    let n = a.nrows();
+    let mut u = Mat::<f64>::zeros(n, n);
+    let mut s = faer::diag::Diag::<f64>::zeros(n);
+    let par = faer_par();
+    let mut mem = MemBuffer::new(self_adjoint_evd_scratch::<f64>(
+        n,
+        ComputeEigenvectors::Yes,
+        par,
+        Default::default(),
+    ));
+    self_adjoint_evd(
+        a,
+        s.as_mut(),
+        Some(u.as_mut()),
+        par,
+        MemStack::new(&mut mem),
+        Default::default(),
+    )?;
+    Ok(((0..n).map(|i| s[i]).collect(), u))
+}
+
+/// The thin Householder QR of the tall `w` (`m ≥ n`): `(Q, R)`, `Q` m × n with orthonormal
+/// columns, `R` n × n upper triangular, by faer's kernels at [`faer_par`] (`Mat::qr` would take
+/// the global parallelism).
+fn householder_qr(w: MatRef<'_, f64>) -> (Mat<f64>, Mat<f64>) {
+    use faer::linalg::householder::{
+        apply_block_householder_sequence_on_the_left_in_place_scratch as apply_scratch,
+        apply_block_householder_sequence_on_the_left_in_place_with_conj as apply,
+    };
+    use faer::linalg::qr::no_pivoting::factor::{
+        qr_in_place, qr_in_place_scratch, recommended_block_size,
+    };
+    let (m, n) = w.shape();
+    debug_assert!(m >= n);
+    let par = faer_par();
+    let bs = recommended_block_size::<f64>(m, n);
+    let mut qr = w.to_owned();
+    let mut coeff = Mat::<f64>::zeros(bs, n);
+    let mut mem = MemBuffer::new(qr_in_place_scratch::<f64>(
+        m,
+        n,
+        bs,
+        par,
+        Default::default(),
+    ));
+    qr_in_place(
+        qr.as_mut(),
+        coeff.as_mut(),
+        par,
+        MemStack::new(&mut mem),
+        Default::default(),
+    );
+    let r = Mat::<f64>::from_fn(n, n, |i, j| if i <= j { qr[(i, j)] } else { 0.0 });
+    // The Householder basis: unit lower trapezoidal.
+    let basis = Mat::<f64>::from_fn(m, n, |i, j| match i.cmp(&j) {
+        std::cmp::Ordering::Less => 0.0,
+        std::cmp::Ordering::Equal => 1.0,
+        std::cmp::Ordering::Greater => qr[(i, j)],
+    });
+    let mut q = Mat::<f64>::identity(m, n);
+    let mut mem = MemBuffer::new(apply_scratch::<f64>(m, bs, n));
+    apply(
+        basis.as_ref(),
+        coeff.as_ref(),
+        Conj::No,
+        q.as_mut(),
+        par,
+        MemStack::new(&mut mem),
+    );
+    (q, r)
+}
+
 /// One Cholesky-QR pass: `w = Q R`, `Q` returned, or `None` if `w` is numerically rank
 /// deficient.
 fn cholqr(w: MatRef<'_, f64>) -> Option<(Mat<f64>, Mat<f64>)> {
@@ -627,14 +716,13 @@ fn orthonormalize(
     let h = cgs2(v, w.as_mut());
     if let Some((q1, r1)) = cholqr(w.as_ref()) {
         if let Some((q2, r2)) = cholqr(q1.as_ref()) {
-            let r = r2 * r1;
+            let mut r = Mat::<f64>::zeros(r2.nrows(), r1.ncols());
+            matmul(r.as_mut(), Accum::Replace, &r2, &r1, 1.0, Par::Seq);
             return (q2, h, r);
         }
     }
     let scale = w.norm_l2().max(f64::MIN_POSITIVE);
-    let qr = w.qr();
-    let r = qr.thin_R().to_owned();
-    let mut q = qr.compute_thin_Q();
+    let (mut q, r) = householder_qr(w.as_ref());
     for j in 0..q.ncols() {
         if r[(j, j)].abs() <= 1e-10 * scale {
             for i in 0..q.nrows() {
@@ -644,7 +732,7 @@ fn orthonormalize(
     }
     project_out(v, q.as_mut());
     project_out(v, q.as_mut());
-    let q2 = q.qr().compute_thin_Q();
+    let (q2, _) = householder_qr(q.as_ref());
     (q2, h, r)
 }
 
@@ -721,12 +809,11 @@ fn krylov_schur(
         // Rayleigh–Ritz on H[0..m, 0..m] (m ≥ the target size; the residual block follows).
         let m = cur;
         let hm = h.as_ref().submatrix(0, 0, m, m).to_owned();
-        let evd = hm
-            .self_adjoint_eigen(Side::Lower)
+        let (s, u) = symmetric_evd(hm.as_ref())
             .map_err(|e| Error::Numerical(format!("projected eigenproblem: {e:?}")))?;
         // Ascending θ from faer; we want the largest θ first.
-        let theta: Vec<f64> = (0..m).rev().map(|i| evd.S().column_vector()[i]).collect();
-        let y = Mat::<f64>::from_fn(m, m, |i, j| evd.U()[(i, m - 1 - j)]);
+        let theta: Vec<f64> = s.into_iter().rev().collect();
+        let y = Mat::<f64>::from_fn(m, m, |i, j| u[(i, m - 1 - j)]);
         // Ritz residual estimates ‖R · y_last‖ (only the last block couples to the next one).
         let ylast = y.as_ref().submatrix(m - b, 0, b, m);
         let mut ry = Mat::<f64>::zeros(b, m);
@@ -888,4 +975,77 @@ fn restart_basis(v: MatMut<'_, f64>, y: MatRef<'_, f64>, m: usize) {
     let half = (n / 2).div_ceil(ROW_CHUNK) * ROW_CHUNK;
     let (top, bottom) = v.split_at_row_mut(half);
     rayon::join(|| restart_basis(top, y, m), || restart_basis(bottom, y, m));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn random(m: usize, n: usize, seed: u64) -> Mat<f64> {
+        let mut rng = SplitMix(seed);
+        Mat::from_fn(m, n, |_, _| rng.next_f64())
+    }
+
+    fn max_abs(a: MatRef<'_, f64>) -> f64 {
+        let mut out = 0.0f64;
+        for j in 0..a.ncols() {
+            for i in 0..a.nrows() {
+                out = out.max(a[(i, j)].abs());
+            }
+        }
+        out
+    }
+
+    /// `QᵀQ − I` and `QR − W`, for the Householder QR written on faer's kernels.
+    #[test]
+    fn householder_qr_factors_a_tall_matrix() {
+        let w = random(3000, 12, 7);
+        let (q, r) = householder_qr(w.as_ref());
+        assert_eq!(
+            (q.nrows(), q.ncols(), r.nrows(), r.ncols()),
+            (3000, 12, 12, 12)
+        );
+        let qtq = gemm_tn(q.as_ref(), q.as_ref());
+        let eye = Mat::<f64>::identity(12, 12);
+        assert!(max_abs((&qtq - &eye).as_ref()) < 1e-13);
+        let mut qr = Mat::<f64>::zeros(3000, 12);
+        matmul(qr.as_mut(), Accum::Replace, &q, &r, 1.0, Par::Seq);
+        assert!(max_abs((&qr - &w).as_ref()) < 1e-12);
+        for j in 0..12 {
+            for i in j + 1..12 {
+                assert_eq!(r[(i, j)], 0.0);
+            }
+        }
+    }
+
+    /// A rank-deficient block (a column repeated, one in the span of V) takes the Householder
+    /// path: the result is still an orthonormal basis orthogonal to V, and `R` couples it to
+    /// the part of `w` outside V.
+    #[test]
+    fn rank_deficient_blocks_are_completed_to_an_orthonormal_basis() {
+        let n = 2500;
+        let (v, _) = householder_qr(random(n, 6, 1).as_ref());
+        let mut w = random(n, 5, 2);
+        for i in 0..n {
+            w[(i, 3)] = w[(i, 1)];
+            w[(i, 4)] = 0.5 * v[(i, 2)] - v[(i, 0)];
+        }
+        let original = w.clone();
+        let mut rng = SplitMix(3);
+        let (q, h, r) = orthonormalize(v.as_ref(), &mut w, &mut rng);
+        let eye = Mat::<f64>::identity(5, 5);
+        assert!(max_abs((&gemm_tn(q.as_ref(), q.as_ref()) - &eye).as_ref()) < 1e-12);
+        assert!(max_abs(gemm_tn(v.as_ref(), q.as_ref()).as_ref()) < 1e-12);
+        // w − V h = Q R on the columns Householder kept (R's vanishing diagonal marks the rest).
+        let mut vh = Mat::<f64>::zeros(n, 5);
+        matmul(vh.as_mut(), Accum::Replace, &v, &h, 1.0, Par::Seq);
+        let mut qr = Mat::<f64>::zeros(n, 5);
+        matmul(qr.as_mut(), Accum::Replace, &q, &r, 1.0, Par::Seq);
+        for j in [0, 1, 2] {
+            for i in 0..n {
+                let lhs = original[(i, j)] - vh[(i, j)];
+                assert!((lhs - qr[(i, j)]).abs() < 1e-10, "column {j}");
+            }
+        }
+    }
 }

@@ -1,6 +1,6 @@
 //! The eigensolver on matrices, without meshes: analytic spectra of small sparse generalized
 //! problems `L φ = λ A φ` (paths, cycles, a non-uniform mass), both methods, every block size
-//! giving the same spectrum, bitwise-identical results whatever the thread count, repeated
+//! giving the same spectrum, the same bits whatever the thread count, repeated
 //! eigenvalues, and errors on bad input.
 
 mod common;
@@ -136,10 +136,11 @@ fn block_sizes_agree_and_each_is_deterministic() {
     }
 }
 
-/// The solves of a block are split over the rayon pool: for a given thread count the result is
-/// the same bits run after run, and one, two and three threads agree to rounding.
+/// A result does not depend on the thread count: every parallel step splits its work the same
+/// way whatever the pool, so one, two and three threads give the same bits (what lets a cluster
+/// worker and a single node, or two machines of different sizes, store the same signature).
 #[test]
-fn thread_counts_give_repeatable_and_agreeing_results() {
+fn thread_counts_give_the_same_bits() {
     let n = 1500;
     let d = uneven_mass(n);
     let l = congruent(&graph_laplacian(n, &path_edges(n)), &d);
@@ -151,20 +152,13 @@ fn thread_counts_give_repeatable_and_agreeing_results() {
             .install(|| solve(&l, &d, &options(40, method, 0)))
     };
     for method in [Method::Krylov, Method::Dense] {
-        let one = run(1, method);
+        let one = bits(&run(1, method));
         for threads in [1, 2, 3] {
-            let a = run(threads, method);
             assert_eq!(
-                bits(&a),
                 bits(&run(threads, method)),
-                "{method:?}: {threads} threads, twice"
+                one,
+                "{method:?}: {threads} threads"
             );
-            for (x, y) in a.values.iter().zip(&one.values) {
-                assert!(
-                    (x - y).abs() <= 1e-10 * (1.0 + y.abs()),
-                    "{method:?}: {threads} vs 1 thread: {x} vs {y}"
-                );
-            }
         }
     }
 }

@@ -306,3 +306,38 @@ fn intrinsic_delaunay_laplacian_is_robust_to_a_bad_triangulation() {
     );
     assert!(robust <= plain && robust < 0.01, "{robust} vs {plain}");
 }
+
+/// A stored signature does not depend on the thread count of the process that computed it: the
+/// generated noisy ring (14 462 vertices) signed under the default spec
+/// in pools of one, two and three threads gives the same bits. A cluster's workers and a single
+/// node sign on pools of different sizes, and their rankings must agree exactly.
+#[test]
+fn default_signature_does_not_depend_on_the_thread_count() {
+    let ring = shapeseek::mesh::samples::samples()
+        .into_iter()
+        .find(|s| s.id == "ring-noise")
+        .expect("the generated noisy ring");
+    let spec = shapeseek::presets::default_config().signature;
+    let sign = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("pool")
+            .install(|| {
+                let (_, sig) = shapeseek::signature::sign(
+                    &ring.mesh,
+                    &spec,
+                    &shapeseek::spectrum::AnalyzeOptions::default(),
+                )
+                .expect("signed");
+                serde_json::to_string(&sig).expect("json")
+            })
+    };
+    let one = sign(1);
+    for threads in [2, 3] {
+        assert!(
+            sign(threads) == one,
+            "{threads} threads sign differently from one"
+        );
+    }
+}
