@@ -107,19 +107,35 @@ fn corrupt_record(id: &[u8], e: impl std::fmt::Display) -> Error {
     )
 }
 
+/// How long [`open_db`] waits for a lock that a database just closed in this process may still
+/// hold.
+const LOCK_PATIENCE: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// Opens the sled database at `path`, with a clear message when another process holds it.
+///
+/// sled releases its file lock only when the last of its background threads lets go of a
+/// database, which can be a moment after the database was dropped: reopening right after closing
+/// (as `migrate` does: it reads the version, backs up, then opens again) could be refused. A
+/// refused lock is therefore retried for [`LOCK_PATIENCE`] before it is reported as another
+/// process's.
 pub fn open_db(path: &Path) -> Result<sled::Db> {
-    sled::Config::new().path(path).open().map_err(|e| {
-        let msg = e.to_string();
-        if msg.contains("could not acquire lock") {
-            storage_err(format!(
-                "{} is in use by another process (a running `shapeseek serve`?): {msg}",
-                path.display()
-            ))
-        } else {
-            storage_err(format!("cannot open {}: {msg}", path.display()))
+    let deadline = std::time::Instant::now() + LOCK_PATIENCE;
+    loop {
+        let e = match sled::Config::new().path(path).open() {
+            Ok(db) => return Ok(db),
+            Err(e) => e.to_string(),
+        };
+        if !e.contains("could not acquire lock") {
+            return Err(storage_err(format!("cannot open {}: {e}", path.display())));
         }
-    })
+        if std::time::Instant::now() >= deadline {
+            return Err(storage_err(format!(
+                "{} is in use by another process (a running `shapeseek serve`?): {e}",
+                path.display()
+            )));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
 }
 
 /// Reads the schema version stored in an open database (None: an empty, new database).
@@ -504,4 +520,31 @@ pub fn now_unix_ms() -> u64 {
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_millis() as u64)
         .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A lock released within the patience is waited for; one held longer is reported as
+    /// another process's.
+    #[test]
+    fn a_lock_released_soon_is_waited_for() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("db");
+        let held = open_db(&path).unwrap();
+        let release = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(300));
+            drop(held);
+        });
+        let t = std::time::Instant::now();
+        let db = open_db(&path).expect("opened once the lock was released");
+        assert!(t.elapsed() < LOCK_PATIENCE);
+        release.join().unwrap();
+        let t = std::time::Instant::now();
+        let e = open_db(&path).expect_err("held by the open database");
+        assert!(t.elapsed() >= LOCK_PATIENCE);
+        assert!(e.to_string().contains("in use by another process"), "{e}");
+        drop(db);
+    }
 }
