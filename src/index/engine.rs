@@ -204,10 +204,22 @@ mod tests {
             e.stored_calibration(&serde_json::to_vec(&paper).unwrap()),
             None
         );
+        // A calibration stored by the release before (256 bins, one bin of smoothing): the
+        // node recalibrates.
+        assert_eq!(
+            (own.bins, own.bandwidth_bins),
+            (presets::DEFAULT_HISTOGRAM_BINS, 0.5)
+        );
         let mut other_bins = own.clone();
-        other_bins.bins = 128;
+        other_bins.bins = 256;
         assert_eq!(
             e.stored_calibration(&serde_json::to_vec(&other_bins).unwrap()),
+            None
+        );
+        let mut other_bandwidth = own.clone();
+        other_bandwidth.bandwidth_bins = 1.0;
+        assert_eq!(
+            e.stored_calibration(&serde_json::to_vec(&other_bandwidth).unwrap()),
             None
         );
         assert_eq!(e.stored_calibration(b"not json"), None);
@@ -229,6 +241,7 @@ mod tests {
 
         let v = serde_json::to_value(&e.config).unwrap();
         assert_eq!(v["calibration"]["percentile"], 0.9);
+        assert_eq!(v["calibration"]["bins"], 128);
         let back: Config = serde_json::from_value(v).unwrap();
         assert_eq!(back, e.config);
         let p = presets::config_by_name("Heat-L2-nL1-Sum[t=0.016..0.1]").unwrap();
