@@ -444,12 +444,27 @@ fn index(addr: SocketAddr) -> Value {
 }
 
 fn wait_settled(addrs: &[SocketAddr], n: usize, what: &str, procs: &[&Proc]) {
+    wait_settled_on(addrs, n, what, procs, false)
+}
+
+/// [`wait_settled`], and then every node at the same calibration epoch: nodes of one spec that
+/// both just recalibrated hold epochs of their own until each installs the newest stored one at
+/// its next reconcile.
+fn wait_settled_alike(addrs: &[SocketAddr], n: usize, what: &str, procs: &[&Proc]) {
+    wait_settled_on(addrs, n, what, procs, true)
+}
+
+fn wait_settled_on(addrs: &[SocketAddr], n: usize, what: &str, procs: &[&Proc], alike: bool) {
     let t = Instant::now();
     loop {
-        let ok = addrs.iter().all(|a| {
-            let v = index(*a);
-            v["shapes"] == n && v["calibrated_on"] == n
-        });
+        let idx: Vec<Value> = addrs.iter().map(|a| index(*a)).collect();
+        let ok = idx
+            .iter()
+            .all(|v| v["shapes"] == n && v["calibrated_on"] == n)
+            && (!alike
+                || idx
+                    .iter()
+                    .all(|v| v["calibration_epoch"] == idx[0]["calibration_epoch"]));
         if ok {
             return;
         }
@@ -758,7 +773,7 @@ fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
 
     // Both nodes hold the whole corpus under the whole-corpus calibration.
     let procs = [&node1, &node2b, &w2];
-    wait_settled(&[a1, a2b], n, "cluster", &procs);
+    wait_settled_alike(&[a1, a2b], n, "cluster", &procs);
     for id in &ids {
         for a in [a1, a2b] {
             let r = http(a, "GET", &format!("/v1/shapes/{id}"), b"").unwrap();
