@@ -234,7 +234,7 @@ impl App {
         &self,
         fut: impl std::future::Future<Output = crate::Result<T>>,
     ) -> crate::Result<T> {
-        self.rt.block_on(fut)
+        crate::storage::on_blocking_thread(|| self.rt.block_on(fut))
     }
 
     /// Sets the index gauges.
@@ -337,7 +337,9 @@ impl App {
         cancel: &Cancel,
     ) -> Result<IngestResult, ApiError> {
         // A twin upload may have been stored while this one waited.
-        if let Some(r) = self.rt.block_on(self.existing(&digest))? {
+        if let Some(r) =
+            crate::storage::on_blocking_thread(|| self.rt.block_on(self.existing(&digest)))?
+        {
             return Ok(r);
         }
         let mut t = Timings::default();
@@ -359,10 +361,10 @@ impl App {
         let outcome = self.block(self.store.insert(shape)).map_err(storage)?;
         let id = match outcome {
             InsertOutcome::AlreadyPresent(id) => {
-                return self
-                    .rt
-                    .block_on(self.existing(&digest))?
-                    .ok_or_else(|| ApiError::internal(format!("shape {id} vanished")));
+                return crate::storage::on_blocking_thread(|| {
+                    self.rt.block_on(self.existing(&digest))
+                })?
+                .ok_or_else(|| ApiError::internal(format!("shape {id} vanished")));
             }
             InsertOutcome::Inserted(id) => id,
         };

@@ -13,7 +13,8 @@
 //! async: a PostgreSQL call parks a task instead of a thread while it waits on the network and on
 //! the commit's fsync. sled is synchronous and its writes flush to disk, so the sled backend runs
 //! each call under [`tokio::task::spawn_blocking`]; the cost (one hop to the blocking pool) is
-//! small against a flush. The backend is chosen at run time from the command line (`--data DIR`
+//! small against a flush, and a caller that is itself a blocking thread (the server's heavy
+//! work and recalibration, inside [`on_blocking_thread`]) runs the call inline instead. The backend is chosen at run time from the command line (`--data DIR`
 //! or `--store postgres://…`), so the server holds an `Arc<dyn ShapeStore>`: the trait must be
 //! dyn-compatible, which `async fn` in traits is not; [`async_trait`] boxes each future (one
 //! allocation per call, nothing against a storage round trip). Methods take owned or borrowed
@@ -49,6 +50,34 @@ pub mod sled_store;
 use crate::index::store::ShapeRecord;
 use crate::{Error, Result};
 use async_trait::async_trait;
+
+thread_local! {
+    static MAY_BLOCK: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f` with this thread marked as one that may block: the sled backend's calls made
+/// inside it (through a runtime's `block_on`) run inline instead of on tokio's blocking pool.
+///
+/// Why: a thread that tokio's blocking pool starts inherits the scheduling priority of the
+/// thread that asked for it. The server's heavy work runs at a lower priority
+/// (`ServerConfig::heavy_nice`); a store call it made from there started low-priority blocking
+/// threads, which the pool then also gave to cheap searches, so that under a load of ingests a
+/// cheap search could run at the heavy work's priority.
+pub fn on_blocking_thread<T>(f: impl FnOnce() -> T) -> T {
+    struct Reset(bool);
+    impl Drop for Reset {
+        fn drop(&mut self) {
+            MAY_BLOCK.with(|c| c.set(self.0));
+        }
+    }
+    let _reset = Reset(MAY_BLOCK.with(|c| c.replace(true)));
+    f()
+}
+
+/// Whether this thread is inside [`on_blocking_thread`].
+pub(crate) fn may_block() -> bool {
+    MAY_BLOCK.with(|c| c.get())
+}
 
 pub use postgres::PgStore;
 pub use sled_store::SledStorage;
@@ -403,5 +432,20 @@ mod tests {
         assert!(check_meta_key("schema_version").is_err());
         assert!(check_meta_key("").is_err());
         assert!(check_meta_key("spec_key").is_ok());
+    }
+
+    /// The mark holds inside, nests, and is cleared after, also after a panic.
+    #[test]
+    fn the_blocking_mark_is_scoped() {
+        assert!(!may_block());
+        on_blocking_thread(|| {
+            assert!(may_block());
+            on_blocking_thread(|| assert!(may_block()));
+            assert!(may_block());
+        });
+        assert!(!may_block());
+        let r = std::panic::catch_unwind(|| on_blocking_thread(|| panic!("inside")));
+        assert!(r.is_err());
+        assert!(!may_block());
     }
 }

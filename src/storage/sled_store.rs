@@ -46,16 +46,15 @@ impl SledStorage {
         &self.store
     }
 
-    /// Runs `f` on the store on the blocking pool.
+    /// Runs `f` on the store: on the blocking pool, or on the calling thread when that is a
+    /// blocking thread already ([`super::on_blocking_thread`]).
     async fn run<T, F>(&self, f: F) -> Result<T>
     where
         T: Send + 'static,
         F: FnOnce(&Store) -> Result<T> + Send + 'static,
     {
         let store = self.store.clone();
-        tokio::task::spawn_blocking(move || f(&store))
-            .await
-            .map_err(join_err)?
+        blocking(move || f(&store)).await
     }
 
     async fn read_calibration(&self) -> Result<Option<StoredCalibration>> {
@@ -134,14 +133,22 @@ struct SledLock {
     _guard: tokio::sync::OwnedMutexGuard<()>,
 }
 
+/// Runs the blocking `f` inline on a thread that may block ([`super::on_blocking_thread`]),
+/// else on tokio's blocking pool.
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T> + Send + 'static) -> Result<T> {
+    if super::may_block() {
+        f()
+    } else {
+        tokio::task::spawn_blocking(f).await.map_err(join_err)?
+    }
+}
+
 #[async_trait]
 impl LockHolder for SledLock {
     async fn commit(self: Box<Self>, cal: &StoredCalibration) -> Result<()> {
         let doc = encode_calibration(cal)?;
         let store = self.store.clone();
-        tokio::task::spawn_blocking(move || store.set_calibration(&doc))
-            .await
-            .map_err(join_err)??;
+        blocking(move || store.set_calibration(&doc)).await?;
         // The guard is released here, after the write is flushed.
         drop(self);
         Ok(())
