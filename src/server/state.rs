@@ -229,11 +229,12 @@ impl App {
     }
 
     /// Runs a store call from a blocking thread (admission work, loading, recalibration) on
-    /// the server's runtime and waits for it. Never called on an async worker thread.
-    pub(super) fn block<T>(
+    /// the server's runtime and waits for it, the sled backend's work inline on this thread
+    /// ([`crate::storage::on_blocking_thread`]). Never called on an async worker thread.
+    pub(super) fn block<T, E>(
         &self,
-        fut: impl std::future::Future<Output = crate::Result<T>>,
-    ) -> crate::Result<T> {
+        fut: impl std::future::Future<Output = std::result::Result<T, E>>,
+    ) -> std::result::Result<T, E> {
         crate::storage::on_blocking_thread(|| self.rt.block_on(fut))
     }
 
@@ -337,9 +338,7 @@ impl App {
         cancel: &Cancel,
     ) -> Result<IngestResult, ApiError> {
         // A twin upload may have been stored while this one waited.
-        if let Some(r) =
-            crate::storage::on_blocking_thread(|| self.rt.block_on(self.existing(&digest)))?
-        {
+        if let Some(r) = self.block(self.existing(&digest))? {
             return Ok(r);
         }
         let mut t = Timings::default();
@@ -361,10 +360,9 @@ impl App {
         let outcome = self.block(self.store.insert(shape)).map_err(storage)?;
         let id = match outcome {
             InsertOutcome::AlreadyPresent(id) => {
-                return crate::storage::on_blocking_thread(|| {
-                    self.rt.block_on(self.existing(&digest))
-                })?
-                .ok_or_else(|| ApiError::internal(format!("shape {id} vanished")));
+                return self
+                    .block(self.existing(&digest))?
+                    .ok_or_else(|| ApiError::internal(format!("shape {id} vanished")));
             }
             InsertOutcome::Inserted(id) => id,
         };

@@ -14,8 +14,9 @@
 //! the commit's fsync. sled is synchronous and its writes flush to disk, so the sled backend runs
 //! each call under [`tokio::task::spawn_blocking`]; the cost (one hop to the blocking pool) is
 //! small against a flush, and a caller that is itself a blocking thread (the server's heavy
-//! work and recalibration, inside [`on_blocking_thread`]) runs the call inline instead. The backend is chosen at run time from the command line (`--data DIR`
-//! or `--store postgres://…`), so the server holds an `Arc<dyn ShapeStore>`: the trait must be
+//! work and recalibration, inside [`on_blocking_thread`]) runs the call inline instead. The
+//! backend is chosen at run time from the command line (`--data DIR` or
+//! `--store postgres://…`), so the server holds an `Arc<dyn ShapeStore>`: the trait must be
 //! dyn-compatible, which `async fn` in traits is not; [`async_trait`] boxes each future (one
 //! allocation per call, nothing against a storage round trip). Methods take owned or borrowed
 //! plain data and return owned bytes, so neither backend's types leak through the seam.
