@@ -293,6 +293,14 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         c.query
             .validate()
             .map_err(|e| Error::InvalidArgument(format!("configuration {}: query: {e}", c.name)))?;
+        let need = c.signature.min_eigenpairs();
+        if args.k < need {
+            return Err(Error::InvalidArgument(format!(
+                "configuration {} needs at least {need} eigenpairs (its ShapeDNA channel), \
+                 --k is {}",
+                c.name, args.k
+            )));
+        }
     }
     let (specs, group_of) = union_specs(&configs);
     // One calibration (and corpus) per signature group and calibration options.

@@ -108,7 +108,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
             }
             ChannelKind::ScaleInvariant { .. } => need_lp = true,
             ChannelKind::Geodesic { .. } => need_geo = true,
-            ChannelKind::ShapeDna { count } => {
+            ChannelKind::ShapeDna { count, .. } => {
                 if *count > nonzero.len() {
                     return Err(Error::InvalidArgument(format!(
                         "ShapeDNA[{count}] needs {count} non-zero eigenvalues, the spectrum has {}",
@@ -251,11 +251,11 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                 ChannelKind::EuclideanD2 { samples } => {
                     ChannelValues::Distribution(d2_sketch(mesh, *samples, q))
                 }
-                ChannelKind::ShapeDna { count } => ChannelValues::Vector(
+                ChannelKind::ShapeDna { count, weight } => ChannelValues::Vector(
                     nonzero
                         .iter()
                         .take(*count)
-                        .map(|&i| sp.eigenvalues[i])
+                        .map(|&i| weight * sp.eigenvalues[i])
                         .collect(),
                 ),
                 ChannelKind::Truncated { .. } => {

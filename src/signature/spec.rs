@@ -101,6 +101,14 @@ impl Norm {
     }
 }
 
+fn unit_weight() -> f64 {
+    1.0
+}
+
+fn is_unit_weight(w: &f64) -> bool {
+    *w == 1.0
+}
+
 /// What one channel of a signature measures.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(rename_all = "snake_case")]
@@ -140,10 +148,17 @@ pub enum ChannelKind {
         /// Number of surface points (all pairs are used).
         samples: usize,
     },
-    /// Baseline: ShapeDNA, the first `count` non-zero eigenvalues (a vector, not a distribution).
+    /// Baseline: ShapeDNA, the first `count` non-zero eigenvalues (a vector, not a distribution),
+    /// each multiplied by `weight`.
     ShapeDna {
         /// Number of eigenvalues.
         count: usize,
+        /// Factor applied to every eigenvalue (1 unless set; omitted from the JSON, the key and
+        /// the name when 1). A vector channel's dissimilarity is in the eigenvalues' units (L1:
+        /// `Σ|λ − λ'|`), so in a [`Aggregation::Sum`](crate::signature::Aggregation::Sum) with
+        /// histogram channels (nL1, at most 2 each) this factor is the vector channel's weight.
+        #[serde(default = "unit_weight", skip_serializing_if = "is_unit_weight")]
+        weight: f64,
     },
     /// Scale-invariant heat kernel of eq. 21, `k̂ = F⁻¹|F(∂_τ log k_τ)|` on a log-time grid
     /// read at one lag, under `norm` over area-normalised quadrature nodes
@@ -273,8 +288,14 @@ impl ChannelSpec {
 
     /// ShapeDNA with `count` eigenvalues.
     pub fn shape_dna(count: usize) -> Self {
+        Self::weighted_shape_dna(count, 1.0)
+    }
+
+    /// ShapeDNA of `count` eigenvalues, each multiplied by `weight` (the channel's weight in a
+    /// sum with histogram channels).
+    pub fn weighted_shape_dna(count: usize, weight: f64) -> Self {
         Self {
-            kind: ChannelKind::ShapeDna { count },
+            kind: ChannelKind::ShapeDna { count, weight },
         }
     }
 
@@ -328,7 +349,10 @@ impl ChannelSpec {
                 norm.label()
             ),
             ChannelKind::EuclideanD2 { samples } => format!("d2[n={samples}]"),
-            ChannelKind::ShapeDna { count } => format!("shapedna[{count}]"),
+            ChannelKind::ShapeDna { count, weight } if *weight == 1.0 => {
+                format!("shapedna[{count}]")
+            }
+            ChannelKind::ShapeDna { count, weight } => format!("shapedna[{count}][w={weight}]"),
             ChannelKind::Truncated { channel, radius } => {
                 let inner = ChannelSpec {
                     kind: (**channel).clone(),
@@ -485,6 +509,21 @@ impl SignatureSpec {
         })
     }
 
+    /// The fewest eigenpairs an analysis needs for this spec: one more than the longest
+    /// ShapeDNA channel (the zero mode of a connected shape comes first), else 2. A spectrum
+    /// with fewer is refused when the signature is computed; a server checks its configured
+    /// count against its default at start.
+    pub fn min_eigenpairs(&self) -> usize {
+        self.channels
+            .iter()
+            .map(|c| match c.base_kind() {
+                ChannelKind::ShapeDna { count, .. } => count + 1,
+                _ => 2,
+            })
+            .max()
+            .unwrap_or(2)
+    }
+
     /// Channel names, in order.
     pub fn channel_names(&self) -> Vec<String> {
         self.channels.iter().map(|c| c.name()).collect()
@@ -601,7 +640,9 @@ pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
                     && lag < steps
             }
             ChannelKind::EuclideanD2 { samples } => *samples >= 2 && *samples <= 100_000,
-            ChannelKind::ShapeDna { count } => *count >= 1,
+            ChannelKind::ShapeDna { count, weight } => {
+                *count >= 1 && weight.is_finite() && *weight > 0.0
+            }
             ChannelKind::Truncated { .. } => false,
         };
         if !ok {

@@ -539,6 +539,44 @@ fn baselines_on_the_sphere() {
     }
 }
 
+/// A weighted ShapeDNA channel holds the eigenvalues times its weight, under its own name; the
+/// unit weight leaves the JSON, the name and the key of an unweighted spec as they were.
+#[test]
+fn weighted_shape_dna_scales_the_eigenvalues() {
+    let a = analysis_of(&generate::icosphere(3), 30, true);
+    let plain = ChannelSpec::shape_dna(10);
+    let weighted = ChannelSpec::weighted_shape_dna(10, 0.25);
+    assert_eq!(plain.name(), "shapedna[10]");
+    assert_eq!(weighted.name(), "shapedna[10][w=0.25]");
+    assert_eq!(
+        serde_json::to_string(&plain).expect("json"),
+        r#"{"kind":{"shape_dna":{"count":10}}}"#
+    );
+    let back: ChannelSpec =
+        serde_json::from_str(r#"{"kind":{"shape_dna":{"count":10,"weight":0.25}}}"#)
+            .expect("parse");
+    assert_eq!(back, weighted);
+    let spec = SignatureSpec::with_channels(vec![plain, weighted]);
+    assert_ne!(
+        spec.key(),
+        SignatureSpec::with_channels(vec![ChannelSpec::shape_dna(10)]).key()
+    );
+    let s = compute_signature(&a, &spec).expect("sig");
+    match (&s.channels[0].values, &s.channels[1].values) {
+        (ChannelValues::Vector(x), ChannelValues::Vector(y)) => {
+            assert_eq!(x.len(), 10);
+            for (l, w) in x.iter().zip(y) {
+                assert_eq!(*w, 0.25 * l);
+            }
+        }
+        _ => panic!("ShapeDNA must be a vector"),
+    }
+    for w in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        let bad = SignatureSpec::with_channels(vec![ChannelSpec::weighted_shape_dna(10, w)]);
+        assert!(compute_signature(&a, &bad).is_err(), "weight {w} accepted");
+    }
+}
+
 /// Kernel-, distance- and distribution-stage aggregation against their definitions.
 #[test]
 fn aggregation_stages() {
