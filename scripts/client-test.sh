@@ -38,7 +38,7 @@ BIN="$TARGET/release/shapeseek"
 WORK="$(mktemp -d)"
 # shellcheck source=scripts/lib/test-server.sh
 . scripts/lib/test-server.sh
-SHAPESEEK_EIGENPAIRS=20 SHAPESEEK_MAX_VERTICES=20000 start_test_server "$WORK"
+SHAPESEEK_EIGENPAIRS=60 SHAPESEEK_MAX_VERTICES=20000 start_test_server "$WORK"
 echo "== server at $URL"
 
 SPEC="$WORK/openapi.yaml"

@@ -27,7 +27,7 @@ DATA="$(mktemp -d)"
 # shellcheck source=scripts/lib/test-server.sh
 . scripts/lib/test-server.sh
 # Small analyses (few eigenpairs) and a deep queue: the fuzzer checks the contract, not capacity.
-SHAPESEEK_EIGENPAIRS=20 SHAPESEEK_QUEUE_CAPACITY=256 SHAPESEEK_MAX_VERTICES=20000 start_test_server "$DATA"
+SHAPESEEK_EIGENPAIRS=60 SHAPESEEK_QUEUE_CAPACITY=256 SHAPESEEK_MAX_VERTICES=20000 start_test_server "$DATA"
 # A stored shape, so that id-based operations also meet an existing resource (stateful phase
 # links are not declared; ids come from the listing).
 # (A UV sphere of 82 vertices: enough for the 20 eigenpairs the server computes.)

@@ -37,7 +37,7 @@ cleanup() {
   rm -rf "$WORK"
 }
 trap cleanup EXIT
-export SHAPESEEK_EIGENPAIRS="${SHAPESEEK_EIGENPAIRS:-30}"
+export SHAPESEEK_EIGENPAIRS="${SHAPESEEK_EIGENPAIRS:-60}"
 
 start_server() {
   rm -rf "$WORK/index"

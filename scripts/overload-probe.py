@@ -3,7 +3,7 @@
 Usage: shapeseek bench meshes --out DIR/meshes --count 48 --size 2000
        python3 scripts/overload-probe.py PATH/TO/shapeseek DIR
 
-Starts the server (SHAPESEEK_EIGENPAIRS=30) on DIR/idx, ingests DIR/meshes, measures 200
+Starts the server (SHAPESEEK_EIGENPAIRS=60) on DIR/idx, ingests DIR/meshes, measures 200
 sequential scan-only searches idle, then sends 12 concurrent searches with a spectral-GW stage
 of shortlist 200 while a scan-only probe runs back to back; prints statuses, Retry-After and
 the probe's p50/p99/max. DIR/idx is left for the caller to remove.
@@ -11,7 +11,7 @@ the probe's p50/p99/max. DIR/idx is left for the caller to remove.
 import json, os, subprocess, sys, threading, time, urllib.request, re
 binp, d = sys.argv[1], sys.argv[2]
 log = open(d + "/log", "w")
-env = dict(os.environ, SHAPESEEK_EIGENPAIRS="30")
+env = dict(os.environ, SHAPESEEK_EIGENPAIRS="60")
 p = subprocess.Popen([binp, "serve", "--data", d + "/idx", "--addr", "127.0.0.1:0", "--log-format", "json"], stdout=log, stderr=log, env=env)
 addr = None
 for _ in range(300):

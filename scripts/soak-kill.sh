@@ -11,7 +11,7 @@
 # identical, signature (200), and re-uploading the same bytes answers 200 with the same id.
 # Prints rounds, acknowledged, cut mid-request, stored, lost; exits 1 if any is lost.
 #
-# SHAPESEEK_* settings come from the environment (default here: SHAPESEEK_EIGENPAIRS=20).
+# SHAPESEEK_* settings come from the environment (default here: SHAPESEEK_EIGENPAIRS=60).
 # CARGO_TARGET_DIR is honoured; the temporary directory is removed at exit.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -19,7 +19,7 @@ ROUNDS="${1:-20}"
 INGESTERS="${2:-3}"
 TARGET="${CARGO_TARGET_DIR:-$PWD/target}"
 BIN="$TARGET/release/shapeseek"
-export SHAPESEEK_EIGENPAIRS="${SHAPESEEK_EIGENPAIRS:-20}"
+export SHAPESEEK_EIGENPAIRS="${SHAPESEEK_EIGENPAIRS:-60}"
 cargo build --quiet --release --bin shapeseek
 WORK="$(mktemp -d)"
 PID=""

@@ -546,13 +546,15 @@ fn synthetic_signature(
     scaled(sig, 1.0 + spread * (2.0 * unit(i as u64) - 1.0))
 }
 
-/// `sig` with every distance multiplied by `f` (its second cut version's too).
+/// `sig` with every distance multiplied by `f` and every eigenvalue (ShapeDNA) by `f⁻²`, as the
+/// shape scaled by `f` would have them (its second cut version's too).
 fn scaled(sig: &Signature, f: f64) -> Signature {
     use shapeseek::signature::ChannelValues;
     let mut sig = sig.clone();
     for c in &mut sig.channels {
-        if let ChannelValues::Distribution(q) = &mut c.values {
-            q.quantiles.iter_mut().for_each(|x| *x *= f);
+        match &mut c.values {
+            ChannelValues::Distribution(q) => q.quantiles.iter_mut().for_each(|x| *x *= f),
+            ChannelValues::Vector(v) => v.iter_mut().for_each(|x| *x /= f * f),
         }
     }
     sig.alternate = sig.alternate.map(|a| Box::new(scaled(&a, f)));

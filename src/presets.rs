@@ -292,7 +292,8 @@ pub fn paper_configs() -> Vec<Config> {
 /// The product default: heat kernel, L2 norm, over their full range the times
 /// [`DEFAULT_FULL_RANGE_TIMES`] (t = 0.00256 … 0.04) and over their short range the three
 /// smallest default scales ([`SMALL_HEAT_SCALES`], t = 0.016, 0.04, 0.1, i.e. t·λ_1 ≈ 0.1–0.6
-/// on unit-area shapes), nL1, summed over the seven channels.
+/// on unit-area shapes), nL1, summed over these seven channels and a weighted ShapeDNA channel
+/// (the first 50 eigenvalues, L1).
 ///
 /// The paragraphs below give the history of the choices, each with the figures of its time:
 /// until `docs/quality.md` §22 the full range used the three small scales too.
@@ -353,6 +354,10 @@ pub fn paper_configs() -> Vec<Config> {
 ///
 /// Histograms of [`DEFAULT_HISTOGRAM_BINS`] bins with half a bin of smoothing
 /// (`docs/quality.md` §23).
+///
+/// The eigenvalues themselves (`docs/quality.md` §24): an eighth channel, the first
+/// [`DEFAULT_SHAPE_DNA_EIGENVALUES`] non-zero eigenvalues of the unit-area shape (ShapeDNA,
+/// paper §5's baseline) weighted by [`DEFAULT_SHAPE_DNA_WEIGHT`] in the sum.
 pub fn default_config() -> Config {
     let full = DEFAULT_FULL_RANGE_TIMES
         .iter()
@@ -361,7 +366,13 @@ pub fn default_config() -> Config {
         .iter()
         .zip(SHORT_RANGE_RADII)
         .map(|(&t, r)| ChannelSpec::truncated(ChannelSpec::heat(t, Norm::L2), r));
-    let channels: Vec<ChannelSpec> = full.chain(short).collect();
+    let channels: Vec<ChannelSpec> = full
+        .chain(short)
+        .chain(std::iter::once(ChannelSpec::weighted_shape_dna(
+            DEFAULT_SHAPE_DNA_EIGENVALUES,
+            DEFAULT_SHAPE_DNA_WEIGHT,
+        )))
+        .collect();
     let mut spec = SignatureSpec::with_channels(channels);
     spec.spectrum_scaling = crate::scale::SpectrumScaling::WeylFit {
         eigenpairs: Some(crate::scale::WEYL_FIT_EIGENPAIRS),
@@ -394,6 +405,29 @@ pub fn default_config() -> Config {
 /// or half a bin (`docs/quality.md` §23): 128 with half a bin in 8 of 8 folds, held-out mean All
 /// 98.10 → 98.13, iso+topology 98.43 → 98.58; on the posed proxy of §22 83.35 → 83.32.
 pub const DEFAULT_HISTOGRAM_BINS: usize = 128;
+
+/// Eigenvalues in the default's ShapeDNA channel (`docs/quality.md` §24): an index needs at
+/// least one eigenpair more ([`SignatureSpec::min_eigenpairs`]).
+///
+/// Why: the diffusion distances' distributions, summaries of a whole shape, do not tell human
+/// figures of a similar build apart (`docs/quality.md` §22: a human query's first 33 shapes
+/// held 18–57 % other humans). The low eigenvalues of the unit-area shape do, to a degree: they
+/// depend on its proportions and girth, and handle cutting and capping (before the spectrum)
+/// keep them close under welds and holes. Alone they rank far below the distributions (the
+/// `ShapeDNA[50]-L2` baseline); added to the sum they move the rankings where the distributions
+/// are undecided. Chosen with [`DEFAULT_SHAPE_DNA_WEIGHT`] by the leave-one-class-out protocol
+/// over 14 characters among nine pairs of a count (20, 30 or 50) and a weight: 50 at 0.0006 in
+/// 14 of 14 folds, held-out mean All 87.75 → 89.94 (topology 87.04 → 91.38, iso+topology 84.40 →
+/// 87.04, partiality 77.09 → 78.74); on bench/dev 98.13 → 98.75, on the posed proxy of §22
+/// 83.32 → 85.93.
+pub const DEFAULT_SHAPE_DNA_EIGENVALUES: usize = 50;
+
+/// Weight of the default's ShapeDNA channel: its eigenvalues (of the unit-area shape, where
+/// `λ_n ≈ 4πn` by Weyl's law) are multiplied by it, so that its L1 dissimilarity `Σ|λ − λ'|`
+/// counts in the sum with the histogram channels' nL1 (each at most 2). At 0.0006 its median
+/// over the pairs of bench/dev is about a third of the seven histogram channels' sum (0.60
+/// against 1.94, `docs/quality.md` §24).
+pub const DEFAULT_SHAPE_DNA_WEIGHT: f64 = 0.0006;
 
 /// Parzen bandwidth of the default's histograms, in bins ([`DEFAULT_HISTOGRAM_BINS`]).
 pub const DEFAULT_BANDWIDTH_BINS: f64 = 0.5;

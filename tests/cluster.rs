@@ -14,7 +14,7 @@
 //! Without PostgreSQL or nats-server the test prints `SKIPPED:` and passes, except under
 //! `CI=true`, where it fails. The corpus: `SHAPESEEK_CLUSTER_MESHES=DIR` uses the meshes of a
 //! directory (e.g. `../shared/bench/dev/meshes`, with `SHAPESEEK_CLUSTER_LIMIT=100`), else the
-//! 30 meshes of `shapeseek samples`; `SHAPESEEK_CLUSTER_EIGENPAIRS` (default 40) sets the
+//! 30 meshes of `shapeseek samples`; `SHAPESEEK_CLUSTER_EIGENPAIRS` (default 60) sets the
 //! eigenpairs of every process.
 
 use std::io::{Read, Write};
@@ -291,8 +291,8 @@ fn wait_ready(addr: SocketAddr, proc_: &Proc) {
 
 /// Settings every process gets (the worker reads the same `SHAPESEEK_*` configuration).
 fn common_env(cmd: &mut Command) -> &mut Command {
-    // 40 eigenpairs keep CI short; SHAPESEEK_CLUSTER_EIGENPAIRS=100 is the product default.
-    let k = std::env::var("SHAPESEEK_CLUSTER_EIGENPAIRS").unwrap_or_else(|_| "40".into());
+    // 60 eigenpairs keep CI short (the default signature needs 51); SHAPESEEK_CLUSTER_EIGENPAIRS=100 is the product default.
+    let k = std::env::var("SHAPESEEK_CLUSTER_EIGENPAIRS").unwrap_or_else(|_| "60".into());
     cmd.env("SHAPESEEK_EIGENPAIRS", k)
         // Every change recalibrates: the final calibration is over the whole corpus on every
         // node and on the sled reference alike.
@@ -840,7 +840,7 @@ fn a_node_of_another_spec_recomputes_the_signatures_it_applies() {
         &pg.url,
         &nats_url,
         &[],
-        &[("SHAPESEEK_EIGENPAIRS", "30")],
+        &[("SHAPESEEK_EIGENPAIRS", "64")],
     );
     let w_old = worker("worker-old", tmp, &pg.url, &nats_url);
     let procs = [&old, &new, &w_old];
@@ -861,7 +861,7 @@ fn a_node_of_another_spec_recomputes_the_signatures_it_applies() {
     let new_key = index(a_new)["spec_key"].as_str().unwrap().to_string();
     let old_key = index(a_old)["spec_key"].as_str().unwrap().to_string();
     assert!(
-        new_key.ends_with("-k30") && old_key.ends_with("-k40"),
+        new_key.ends_with("-k64") && old_key.ends_with("-k60"),
         "{new_key} {old_key}"
     );
     let stored = pg_query(

@@ -527,8 +527,12 @@ fn end_to_end_on_generated_meshes_with_cache() {
     let tmp = tempfile::tempdir().unwrap();
     let manifest = generated_bench(tmp.path());
     let mut args = EvalOptions::new(&manifest);
+    // Fewer eigenpairs than the default's ShapeDNA channel needs: refused before any work.
     args.k = 30;
     args.config = Some("default".into());
+    let e = run_eval(&args).unwrap_err().to_string();
+    assert!(e.contains("at least 51 eigenpairs"), "{e}");
+    args.k = 60;
     args.cache = Some(tmp.path().join("cache"));
     args.json = Some(tmp.path().join("out/results.json"));
     args.out = Some(tmp.path().join("out"));

@@ -28,7 +28,7 @@ impl Server {
         let mut cfg = ServerConfig {
             data: data.to_path_buf(),
             addr: "127.0.0.1:0".into(),
-            eigenpairs: 30,
+            eigenpairs: 60,
             workers: 2,
             shutdown_grace_secs: 5.0,
             ..Default::default()

@@ -12,7 +12,8 @@
 //! code's analyses. When the change was not meant to move them, the failure found a regression.
 //! A change of the default *specification* (its channels, say) moves the figures without
 //! moving the code: the spec's key changes on its own, so the figures are re-recorded at the
-//! same revision (as for the seven channels of `docs/quality.md` §22).
+//! same revision (as for the seven channels of `docs/quality.md` §22 and the weighted
+//! ShapeDNA channel of §24).
 
 use shapeseek::index::engine::Engine;
 use shapeseek::mesh::samples::class_mesh;
@@ -29,7 +30,7 @@ const RECORDED_AT: u32 = 0;
 const RECORDED_COUNTS: [usize; 4] = [4819, 9572, 4819, 100];
 
 /// Eigenvalues 1–8, then per channel the sketch's total mass and its quantiles at 10, 50 and
-/// 90 %, then the signature's area; then the payload's first sample weight, the mean of its
+/// 90 % (a vector channel: its first four values), then the signature's area; then the payload's first sample weight, the mean of its
 /// distances per time and its `lambda1`; then the vertices, sketch figures and area of the second
 /// cut version of a torus (a genuine handle, cut only by the default's alternate rule).
 const RECORDED: &[f64] = &[
@@ -69,6 +70,10 @@ const RECORDED: &[f64] = &[
     0.14752290082844424,
     0.5953160977839276,
     0.9716340349983408,
+    0.004099759471691184,
+    0.00837938659077439,
+    0.008734103507708155,
+    0.012117605245115539,
     0.9999999999999987,
     0.012083825923129784,
     2.460301521199219,
@@ -104,6 +109,10 @@ const RECORDED: &[f64] = &[
     0.08929102158621038,
     0.5179077543077255,
     0.9779829312634041,
+    0.0010818493033957386,
+    0.004320531847155062,
+    0.009695590640442087,
+    0.017173412428440178,
     0.9999999999999805,
 ];
 

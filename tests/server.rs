@@ -18,7 +18,7 @@ mod multipart;
 use multipart::multipart;
 
 /// Eigenpairs per shape in these tests (small meshes, fast CI).
-const K: usize = 30;
+const K: usize = 60;
 
 // ---------------------------------------------------------------- HTTP client
 
@@ -1548,13 +1548,18 @@ fn config_layers() {
     assert!(ServerConfig::load(None, bad).is_err());
     let bad = vec![("SHAPESEEK_LOG_FORMAT".to_string(), "xml".to_string())];
     assert!(ServerConfig::load(None, bad).is_err());
+    // Too few eigenpairs for the default signature's ShapeDNA channel: refused at start, with
+    // the count it needs, rather than every upload refused later.
+    let few = vec![("SHAPESEEK_EIGENPAIRS".to_string(), "30".to_string())];
+    let e = ServerConfig::load(None, few).unwrap_err().to_string();
+    assert!(e.contains("at least 51"), "{e}");
 }
 
 /// A shutdown lets an ingest already running finish (201, and it is there after a restart).
 #[test]
 fn shutdown_finishes_in_flight_ingest() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.eigenpairs = 60);
+    let s = Server::start(dir.path(), |c| c.eigenpairs = 100);
     let a = s.addr;
     let bytes = bytes_of(&bumpy_sphere(4, 0.05), Format::Ply); // 2562 vertices
     let b2 = bytes.clone();
@@ -1571,7 +1576,7 @@ fn shutdown_finishes_in_flight_ingest() {
     let r = t.join().unwrap();
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let id = r.json()["id"].as_str().unwrap().to_string();
-    let s = Server::start(dir.path(), |c| c.eigenpairs = 60);
+    let s = Server::start(dir.path(), |c| c.eigenpairs = 100);
     assert_eq!(get(s.addr, &format!("/v1/shapes/{id}")).status, 200);
     s.stop();
 }

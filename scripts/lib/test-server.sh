@@ -1,7 +1,7 @@
 # Sourced by the test scripts (contract-test.sh, client-test.sh): starts `"$BIN" serve` on a free
 # 127.0.0.1 port with its index in DIR/index and its JSON log in DIR/server.log, stops it and
 # removes DIR when the script exits, and sets PID and URL. SHAPESEEK_* settings come from the
-# caller's environment (e.g. `SHAPESEEK_EIGENPAIRS=20 start_test_server "$DIR"`).
+# caller's environment (e.g. `SHAPESEEK_EIGENPAIRS=60 start_test_server "$DIR"`).
 start_test_server() {
   TEST_SERVER_DIR="$1"
   local log="$1/server.log" addr=""

@@ -231,6 +231,15 @@ impl ServerConfig {
         if !(2..=2000).contains(&self.eigenpairs) {
             return bad("eigenpairs must be in 2..=2000");
         }
+        let need = crate::presets::default_config().signature.min_eigenpairs();
+        if self.eigenpairs < need {
+            return bad(&format!(
+                "eigenpairs must be at least {need} for the default signature (its ShapeDNA \
+                 channel compares the first {} non-zero eigenvalues), got {}",
+                need - 1,
+                self.eigenpairs
+            ));
+        }
         if !(self.heavy_share.is_finite() && self.heavy_share > 0.0 && self.heavy_share <= 1.0) {
             return bad("heavy_share must be in (0, 1]");
         }

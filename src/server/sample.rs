@@ -2,9 +2,10 @@
 //!
 //! A calibration (`ranking::calibrate`: per channel, the percentile of the pooled distance
 //! distributions of the corpus) reads every shape's whole signature — its quantile sketches,
-//! ≈ 58 KB with the default's seven channels (a sixth more than the 49.5 KB measured with six,
-//! docs/scale-out.md) — and holds them all while it computes: 6 GB at 100 000 shapes, 60 GB at
-//! a million, where the scan itself keeps ≈ 3.9 KB per shape. Up to
+//! ≈ 58 KB with the default's seven histogram channels (a sixth more than the 49.5 KB measured
+//! with six, docs/scale-out.md; its ShapeDNA channel adds 400 bytes) — and holds them all while
+//! it computes: 6 GB at 100 000 shapes, 60 GB at a million, where the scan itself keeps ≈ 3.9 KB
+//! per shape. Up to
 //! `calibration_sample` shapes (10 000 by default) it is still computed on every one; above, on
 //! a sample of that many: the shapes with the smallest content hashes (the SHA-256 of the
 //! upload). Content hashes are spread uniformly and do not depend on ids, arrival order or the
