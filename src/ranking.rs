@@ -626,12 +626,13 @@ pub fn histogram_dissimilarity(d: Dissimilarity, a: &Histogram, b: &Histogram) -
 }
 
 /// Dissimilarity of two vectors: L1 → `Σ|a − b|`, L∞ → `max|a − b|`, every other choice the
-/// Euclidean distance (ShapeDNA). Different lengths → ∞.
-pub fn vector_dissimilarity(d: Dissimilarity, a: &[f64], b: &[f64]) -> f64 {
+/// Euclidean distance (ShapeDNA). Different lengths → ∞. Summed in `f64` whatever the values
+/// are kept in (`f64` as computed, `f32` in the search corpus).
+pub fn vector_dissimilarity<T: Copy + Into<f64>>(d: Dissimilarity, a: &[T], b: &[T]) -> f64 {
     if a.len() != b.len() {
         return f64::INFINITY;
     }
-    let diffs = a.iter().zip(b).map(|(x, y)| (x - y).abs());
+    let diffs = a.iter().zip(b).map(|(&x, &y)| (x.into() - y.into()).abs());
     match d {
         Dissimilarity::L1 | Dissimilarity::NL1 => diffs.sum(),
         Dissimilarity::LInf => diffs.fold(0.0, f64::max),

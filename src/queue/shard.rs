@@ -201,7 +201,7 @@ impl W {
         self.len(e.vectors.len());
         for v in &e.vectors {
             self.len(v.len());
-            v.iter().for_each(|&x| self.u64(x.to_bits()));
+            v.iter().for_each(|&x| self.u32(x.to_bits()));
         }
         // The second cut version: a flag, then its encoding (which has none).
         match &e.alt {
@@ -272,10 +272,10 @@ impl<'a> R<'a> {
         let n = self.len(4)?;
         let mut vectors = Vec::with_capacity(n);
         for _ in 0..n {
-            let m = self.len(8)?;
+            let m = self.len(4)?;
             vectors.push(
                 (0..m)
-                    .map(|_| self.u64().map(f64::from_bits))
+                    .map(|_| self.u32().map(f32::from_bits))
                     .collect::<Result<_>>()?,
             );
         }
@@ -422,7 +422,7 @@ fn encoded_size(e: &Encoded) -> usize {
         + 4 * e.groups.len()
         + 9 * e.mass.len()
         + e.present.len()
-        + e.vectors.iter().map(|v| 8 * v.len() + 4).sum::<usize>()
+        + e.vectors.iter().map(|v| 4 * v.len() + 4).sum::<usize>()
         + 1
         + e.alt.as_deref().map_or(0, |a| 24 + encoded_size(a))
 }
@@ -629,7 +629,7 @@ mod tests {
             groups: vec![7, u32::MAX],
             mass: vec![0.5, f64::MIN_POSITIVE],
             present: vec![true, false, true],
-            vectors: vec![vec![], vec![1.0, -2.5, f64::NAN]],
+            vectors: vec![Box::default(), vec![1.0, -2.5, f32::NAN].into()],
             alt: None,
         }
     }

@@ -17,14 +17,15 @@
 //!   `T_max = TOTAL · 2^MAX_SHIFT` (`u32`: `Σ_{b∈g} a_b · 2^{MAX_SHIFT − s}`, exact), the first
 //!   level of the lower bounds of [`super::prune`], comparable across shapes without a shift.
 //!
-//! Vector channels (ShapeDNA) are kept as `f64` vectors; a channel a shape lacks is marked
-//! absent. A shape with a second cut version ([`crate::signature::Signature::alternate`]) keeps
+//! Vector channels (ShapeDNA) are kept as `f32` ([`Vector`]: half the bytes of the `f64` they
+//! are computed in; their rounding, a relative 6·10⁻⁸, is far below the counts' quantum of
+//! 1/65 535); a channel a shape lacks is marked absent. A shape with a second cut version ([`crate::signature::Signature::alternate`]) keeps
 //! it as a row of a second set of the same flat arrays, in position order, and every shape
 //! the row of its second version (4 bytes per shape; the default gives one to the shapes whose
 //! short loops its first cut leaves). Per channel, the default's 128 bins cost 256 bytes of
 //! counts, 32 of group sums, 8 of mass and 1 of exponent (297; its seven histogram channels:
 //! 2 079 per version, 2 087 with the presence bytes of its eight channels, plus its 50
-//! eigenvalues, 400 bytes in their own allocation); the paper's 256 bins cost 553, against
+//! eigenvalues, 200 bytes in their own allocation); the paper's 256 bins cost 553, against
 //! 6 144 for the three `f64` arrays per bin this encoding replaced.
 //!
 //! [`Encoded`] is one shape in the same encoding (a query, or a row being inserted); a
@@ -51,6 +52,9 @@ pub fn total_at(s: u8) -> f64 {
 /// Groups per histogram of the bound table: a layout's groups are `bins / GROUPS` bins wide
 /// (rounded up; the last group of a channel may be shorter), 32 for the paper's 256 bins.
 pub const GROUPS: usize = 8;
+
+/// One shape's values of a vector channel, as the corpus keeps and compares them.
+pub type Vector = Box<[f32]>;
 
 /// Where a channel's values live.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -234,7 +238,7 @@ pub struct Encoded {
     /// Per channel (layout order): whether the shape has it.
     pub present: Vec<bool>,
     /// Per vector channel (empty when absent).
-    pub vectors: Vec<Vec<f64>>,
+    pub vectors: Vec<Vector>,
     /// The second cut version in the same layout (its own `alt` is `None`).
     pub alt: Option<Box<Encoded>>,
 }
@@ -254,7 +258,7 @@ pub struct VersionRef<'a> {
     /// Presence per channel.
     pub present: &'a [bool],
     /// Vectors per vector channel.
-    pub vectors: &'a [Vec<f64>],
+    pub vectors: &'a [Vector],
 }
 
 /// A view of one shape, in the corpus or an [`Encoded`]: its first version (the fields, by
@@ -294,7 +298,7 @@ impl Encoded {
             groups: vec![0; layout.histograms() * layout.groups],
             mass: vec![0.0; layout.histograms()],
             present: vec![false; layout.names.len()],
-            vectors: vec![Vec::new(); layout.vectors()],
+            vectors: vec![Vector::default(); layout.vectors()],
             alt: None,
         }
     }
@@ -319,7 +323,7 @@ impl Encoded {
                     e.present[c] = true;
                 }
                 (Some(PreparedChannel::Vector(v)), Slot::Vector(k)) => {
-                    e.vectors[k] = v.clone();
+                    e.vectors[k] = v.iter().map(|&x| x as f32).collect();
                     e.present[c] = true;
                 }
                 _ => {}
@@ -397,7 +401,7 @@ struct Rows {
     groups: Vec<u32>,
     mass: Vec<f64>,
     present: Vec<bool>,
-    vectors: Vec<Vec<f64>>,
+    vectors: Vec<Vector>,
 }
 
 /// Per-row lengths of [`Rows`]' arrays: histogram counts, group sums, histogram channels,
@@ -707,15 +711,15 @@ fn arrays_bytes(
     groups: &Vec<u32>,
     mass: &Vec<f64>,
     present: &Vec<bool>,
-    vectors: &Vec<Vec<f64>>,
+    vectors: &Vec<Vector>,
 ) -> usize {
     hist.capacity() * 2
         + shift.capacity()
         + groups.capacity() * 4
         + mass.capacity() * 8
         + present.capacity()
-        + vectors.capacity() * std::mem::size_of::<Vec<f64>>()
-        + vectors.iter().map(|v| v.capacity() * 8).sum::<usize>()
+        + vectors.capacity() * std::mem::size_of::<Vector>()
+        + vectors.iter().map(|v| v.len() * 4).sum::<usize>()
 }
 
 /// Inserts `items` at `at`, appending without a temporary when `at` is the end.

@@ -556,11 +556,12 @@ fn weighted_shape_dna_scales_the_eigenvalues() {
         serde_json::from_str(r#"{"kind":{"shape_dna":{"count":10,"weight":0.25}}}"#)
             .expect("parse");
     assert_eq!(back, weighted);
-    let spec = SignatureSpec::with_channels(vec![plain, weighted]);
+    // The weight is part of the key: a stored signature of another weight is stale.
     assert_ne!(
-        spec.key(),
-        SignatureSpec::with_channels(vec![ChannelSpec::shape_dna(10)]).key()
+        SignatureSpec::with_channels(vec![weighted.clone()]).key(),
+        SignatureSpec::with_channels(vec![plain.clone()]).key()
     );
+    let spec = SignatureSpec::with_channels(vec![plain, weighted]);
     let s = compute_signature(&a, &spec).expect("sig");
     match (&s.channels[0].values, &s.channels[1].values) {
         (ChannelValues::Vector(x), ChannelValues::Vector(y)) => {
