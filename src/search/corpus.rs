@@ -19,11 +19,12 @@
 //!
 //! Vector channels (ShapeDNA) are kept as `f32` ([`Vector`]: half the bytes of the `f64` they
 //! are computed in; their rounding, a relative 6·10⁻⁸, is far below the counts' quantum of
-//! 1/65 535); a channel a shape lacks is marked absent. A shape with a second cut version ([`crate::signature::Signature::alternate`]) keeps
-//! it as a row of a second set of the same flat arrays, in position order, and every shape
-//! the row of its second version (4 bytes per shape; the default gives one to the shapes whose
-//! short loops its first cut leaves). Per channel, the default's 128 bins cost 256 bytes of
-//! counts, 32 of group sums, 8 of mass and 1 of exponent (297; its seven histogram channels:
+//! 1/65 535); a channel a shape lacks is marked absent. A shape with a second cut version
+//! ([`crate::signature::Signature::alternate`]) keeps it as a row of a second set of the same
+//! flat arrays, in position order, and every shape the row of its second version (4 bytes per
+//! shape; the default gives one to the shapes whose short loops its first cut leaves). Per
+//! channel, the default's 128 bins cost 256 bytes of counts, 32 of group sums, 8 of mass and 1
+//! of exponent (297; its seven histogram channels:
 //! 2 079 per version, 2 087 with the presence bytes of its eight channels, plus its 50
 //! eigenvalues, 200 bytes in their own allocation); the paper's 256 bins cost 553, against
 //! 6 144 for the three `f64` arrays per bin this encoding replaced.
