@@ -291,7 +291,8 @@ fn wait_ready(addr: SocketAddr, proc_: &Proc) {
 
 /// Settings every process gets (the worker reads the same `SHAPESEEK_*` configuration).
 fn common_env(cmd: &mut Command) -> &mut Command {
-    // 60 eigenpairs keep CI short (the default signature needs 51); SHAPESEEK_CLUSTER_EIGENPAIRS=100 is the product default.
+    // 60 eigenpairs keep CI short (the default signature needs 51);
+    // SHAPESEEK_CLUSTER_EIGENPAIRS=100 is the product default.
     let k = std::env::var("SHAPESEEK_CLUSTER_EIGENPAIRS").unwrap_or_else(|_| "60".into());
     cmd.env("SHAPESEEK_EIGENPAIRS", k)
         // Every change recalibrates: the final calibration is over the whole corpus on every
