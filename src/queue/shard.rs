@@ -294,15 +294,19 @@ impl<'a> R<'a> {
                 ))
             }
         };
-        Ok(Encoded {
+        // The vectors' group sums are not sent: they follow from the vectors.
+        let mut e = Encoded {
             hist,
             shift,
             groups,
             mass,
             present,
             vectors,
+            vgroups: Vec::new(),
             alt,
-        })
+        };
+        e.fill_vector_groups();
+        Ok(e)
     }
 }
 
@@ -630,6 +634,7 @@ mod tests {
             mass: vec![0.5, f64::MIN_POSITIVE],
             present: vec![true, false, true],
             vectors: vec![Box::default(), vec![1.0, -2.5, f32::NAN].into()],
+            vgroups: Vec::new(),
             alt: None,
         }
     }
@@ -667,6 +672,17 @@ mod tests {
         assert_eq!(r2.exclude.as_deref(), Some("0000000000000001"));
         assert_eq!(q2.hist, q.hist);
         assert_eq!(q2.vectors[1][2].to_bits(), q.vectors[1][2].to_bits());
+        // The vectors' group sums are recomputed on arrival (NaN: a group holding a NaN).
+        let vgroups: Vec<u32> = q2.vgroups.iter().map(|x| x.to_bits()).collect();
+        let mut sent = q.clone();
+        sent.fill_vector_groups();
+        assert_eq!(vgroups.len(), 16);
+        assert_eq!(&q2.vgroups[8..10], &[1.0, -2.5]);
+        assert!(q2.vgroups[10].is_nan());
+        assert_eq!(
+            vgroups,
+            sent.vgroups.iter().map(|x| x.to_bits()).collect::<Vec<_>>()
+        );
         let alt = q2.alt.as_deref().expect("second version");
         assert_eq!(
             (alt.hist.as_slice(), alt.alt.is_none()),

@@ -19,14 +19,17 @@
 //!
 //! Vector channels (ShapeDNA) are kept as `f32` ([`Vector`]: half the bytes of the `f64` they
 //! are computed in; their rounding, a relative 6·10⁻⁸, is far below the counts' quantum of
-//! 1/65 535); a channel a shape lacks is marked absent. A shape with a second cut version
+//! 1/65 535), with the sums of their values over [`VECTOR_GROUPS`] groups (`f32`), from which
+//! the bounds of [`super::prune`] follow; a channel a shape lacks is marked absent. A shape
+//! with a second cut version
 //! ([`crate::signature::Signature::alternate`]) keeps it as a row of a second set of the same
 //! flat arrays, in position order, and every shape the row of its second version (4 bytes per
 //! shape; the default gives one to the shapes whose short loops its first cut leaves). Per
 //! channel, the default's 128 bins cost 256 bytes of counts, 32 of group sums, 8 of mass and 1
 //! of exponent (297; its seven histogram channels:
 //! 2 079 per version, 2 087 with the presence bytes of its eight channels, plus its 50
-//! eigenvalues, 200 bytes in their own allocation); the paper's 256 bins cost 553, against
+//! eigenvalues, 200 bytes in their own allocation, and their 8 group sums, 32 bytes); the
+//! paper's 256 bins cost 553, against
 //! 6 144 for the three `f64` arrays per bin this encoding replaced.
 //!
 //! [`Encoded`] is one shape in the same encoding (a query, or a row being inserted); a
@@ -56,6 +59,32 @@ pub const GROUPS: usize = 8;
 
 /// One shape's values of a vector channel, as the corpus keeps and compares them.
 pub type Vector = Box<[f32]>;
+
+/// Groups per vector channel of the bound table: a vector of `n` values is summed in groups of
+/// [`vector_group_width`]`(n)` consecutive values (the last may be shorter; unused groups are
+/// 0), 8 groups of 7 (the last of 1) for the default's 50 eigenvalues.
+pub const VECTOR_GROUPS: usize = 8;
+
+/// Values per group of a vector of `n` values (see [`VECTOR_GROUPS`]).
+pub fn vector_group_width(n: usize) -> usize {
+    n.div_ceil(VECTOR_GROUPS).max(1)
+}
+
+/// Writes the group sums of `v` into `out` ([`VECTOR_GROUPS`] entries): each summed in `f64`
+/// from the `f32` values, then rounded to `f32`, so within `2^-23` of its magnitude of the
+/// exact sum (the bounds allow for that). A sum whose `f64` accumulation may be further off
+/// (values of both signs that cancel to below `2^-29 / w` of their absolute sum, for groups of
+/// `w` values) is NaN: it bounds nothing. Unused groups are 0.
+fn vector_groups(v: &[f32], out: &mut [f32]) {
+    out.iter_mut().for_each(|x| *x = 0.0);
+    for (o, chunk) in out.iter_mut().zip(v.chunks(vector_group_width(v.len()))) {
+        let sum: f64 = chunk.iter().map(|&x| x as f64).sum();
+        let abs: f64 = chunk.iter().map(|&x| (x as f64).abs()).sum();
+        // Accumulation error ≤ (w − 1) 2^-53 Σ|x|; allowed: 2^-24 |sum| (f32 rounding adds as much).
+        let exact_enough = (chunk.len() - 1) as f64 * abs <= sum.abs() * (1u64 << 29) as f64;
+        *o = if exact_enough { sum as f32 } else { f32::NAN };
+    }
+}
 
 /// Where a channel's values live.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -146,6 +175,7 @@ impl Layout {
             && e.mass.len() == self.histograms()
             && e.present.len() == self.names.len()
             && e.vectors.len() == self.vectors()
+            && e.vgroups.len() == self.vectors() * VECTOR_GROUPS
             && e.alt
                 .as_deref()
                 .is_none_or(|a| a.alt.is_none() && self.fits(a))
@@ -240,6 +270,8 @@ pub struct Encoded {
     pub present: Vec<bool>,
     /// Per vector channel (empty when absent).
     pub vectors: Vec<Vector>,
+    /// Group sums of the vectors, `[vector channel][group]` ([`VECTOR_GROUPS`] per channel).
+    pub vgroups: Vec<f32>,
     /// The second cut version in the same layout (its own `alt` is `None`).
     pub alt: Option<Box<Encoded>>,
 }
@@ -260,6 +292,8 @@ pub struct VersionRef<'a> {
     pub present: &'a [bool],
     /// Vectors per vector channel.
     pub vectors: &'a [Vector],
+    /// Group sums of the vectors, `[vector channel][group]`.
+    pub vgroups: &'a [f32],
 }
 
 /// A view of one shape, in the corpus or an [`Encoded`]: its first version (the fields, by
@@ -300,6 +334,7 @@ impl Encoded {
             mass: vec![0.0; layout.histograms()],
             present: vec![false; layout.names.len()],
             vectors: vec![Vector::default(); layout.vectors()],
+            vgroups: vec![0.0; layout.vectors() * VECTOR_GROUPS],
             alt: None,
         }
     }
@@ -353,14 +388,29 @@ impl Encoded {
             &self.mass,
             &self.present,
             &self.vectors,
+            &self.vgroups,
         ) + self
             .alt
             .as_ref()
             .map_or(0, |a| std::mem::size_of::<Encoded>() + a.heap_bytes())
     }
 
-    /// Recomputes the group sums from the counts and exponents (after editing `hist`).
+    /// Recomputes the vectors' group sums (after editing `vectors`).
+    pub fn fill_vector_groups(&mut self) {
+        self.vgroups.resize(self.vectors.len() * VECTOR_GROUPS, 0.0);
+        for (v, out) in self
+            .vectors
+            .iter()
+            .zip(self.vgroups.chunks_exact_mut(VECTOR_GROUPS))
+        {
+            vector_groups(v, out);
+        }
+    }
+
+    /// Recomputes the group sums from the counts and exponents and from the vectors (after
+    /// editing `hist` or `vectors`).
     pub fn fill_groups(&mut self, layout: &Layout) {
+        self.fill_vector_groups();
         for k in 0..layout.histograms() {
             let row = &self.hist[k * layout.bins..(k + 1) * layout.bins];
             let up = MAX_SHIFT - self.shift[k].min(MAX_SHIFT);
@@ -388,6 +438,7 @@ impl Encoded {
             mass: &self.mass,
             present: &self.present,
             vectors: &self.vectors,
+            vgroups: &self.vgroups,
         }
     }
 }
@@ -403,33 +454,36 @@ struct Rows {
     mass: Vec<f64>,
     present: Vec<bool>,
     vectors: Vec<Vector>,
+    vgroups: Vec<f32>,
 }
 
 /// Per-row lengths of [`Rows`]' arrays: histogram counts, group sums, histogram channels,
-/// channels, vector channels.
-fn strides(l: &Layout) -> [usize; 5] {
+/// channels, vector channels, vector group sums.
+fn strides(l: &Layout) -> [usize; 6] {
     [
         l.histograms() * l.bins,
         l.histograms() * l.groups,
         l.histograms(),
         l.names.len(),
         l.vectors(),
+        l.vectors() * VECTOR_GROUPS,
     ]
 }
 
 impl Rows {
     fn reserve_exact(&mut self, l: &Layout, n: usize) {
-        let [h, g, m, p, v] = strides(l);
+        let [h, g, m, p, v, vg] = strides(l);
         self.hist.reserve_exact(n * h);
         self.shift.reserve_exact(n * m);
         self.groups.reserve_exact(n * g);
         self.mass.reserve_exact(n * m);
         self.present.reserve_exact(n * p);
         self.vectors.reserve_exact(n * v);
+        self.vgroups.reserve_exact(n * vg);
     }
 
     fn get(&self, l: &Layout, at: usize) -> VersionRef<'_> {
-        let [h, g, m, p, v] = strides(l);
+        let [h, g, m, p, v, vg] = strides(l);
         VersionRef {
             hist: &self.hist[at * h..(at + 1) * h],
             shift: &self.shift[at * m..(at + 1) * m],
@@ -437,39 +491,43 @@ impl Rows {
             mass: &self.mass[at * m..(at + 1) * m],
             present: &self.present[at * p..(at + 1) * p],
             vectors: &self.vectors[at * v..(at + 1) * v],
+            vgroups: &self.vgroups[at * vg..(at + 1) * vg],
         }
     }
 
     /// Inserts the arrays of `e` (not its second version) as row `at`.
     fn insert(&mut self, l: &Layout, at: usize, e: &Encoded) {
-        let [h, g, m, p, v] = strides(l);
+        let [h, g, m, p, v, vg] = strides(l);
         splice(&mut self.hist, at * h, &e.hist);
         splice(&mut self.shift, at * m, &e.shift);
         splice(&mut self.groups, at * g, &e.groups);
         splice(&mut self.mass, at * m, &e.mass);
         splice(&mut self.present, at * p, &e.present);
         splice(&mut self.vectors, at * v, &e.vectors);
+        splice(&mut self.vgroups, at * vg, &e.vgroups);
         self.len += 1;
     }
 
     fn replace(&mut self, l: &Layout, at: usize, e: &Encoded) {
-        let [h, g, m, p, v] = strides(l);
+        let [h, g, m, p, v, vg] = strides(l);
         self.hist[at * h..(at + 1) * h].copy_from_slice(&e.hist);
         self.shift[at * m..(at + 1) * m].copy_from_slice(&e.shift);
         self.groups[at * g..(at + 1) * g].copy_from_slice(&e.groups);
         self.mass[at * m..(at + 1) * m].copy_from_slice(&e.mass);
         self.present[at * p..(at + 1) * p].copy_from_slice(&e.present);
         self.vectors[at * v..(at + 1) * v].clone_from_slice(&e.vectors);
+        self.vgroups[at * vg..(at + 1) * vg].copy_from_slice(&e.vgroups);
     }
 
     fn remove(&mut self, l: &Layout, at: usize) {
-        let [h, g, m, p, v] = strides(l);
+        let [h, g, m, p, v, vg] = strides(l);
         self.hist.drain(at * h..(at + 1) * h);
         self.shift.drain(at * m..(at + 1) * m);
         self.groups.drain(at * g..(at + 1) * g);
         self.mass.drain(at * m..(at + 1) * m);
         self.present.drain(at * p..(at + 1) * p);
         self.vectors.drain(at * v..(at + 1) * v);
+        self.vgroups.drain(at * vg..(at + 1) * vg);
         self.len -= 1;
     }
 
@@ -481,6 +539,7 @@ impl Rows {
             &self.mass,
             &self.present,
             &self.vectors,
+            &self.vgroups,
         )
     }
 }
@@ -571,6 +630,7 @@ impl Corpus {
             mass: v.mass.to_vec(),
             present: v.present.to_vec(),
             vectors: v.vectors.to_vec(),
+            vgroups: v.vgroups.to_vec(),
             alt: None,
         };
         Encoded {
@@ -593,6 +653,26 @@ impl Corpus {
             .map(move |(j, _)| base + j)
     }
 
+    /// The second versions of the shapes at `range`: their positions, in order, and their
+    /// group sums and vector group sums, contiguous (second versions are kept in position
+    /// order, so those of a range of positions are consecutive rows).
+    pub(crate) fn alt_groups_in(
+        &self,
+        range: std::ops::Range<usize>,
+    ) -> (Vec<usize>, &[u32], &[f32]) {
+        let at: Vec<usize> = self.alts_in(range).collect();
+        let [_, g, _, _, _, vg] = strides(&self.layout);
+        match (at.first(), at.last()) {
+            (Some(&a), Some(&b)) => {
+                let (j0, j1) = (self.alt_of[a] as usize, self.alt_of[b] as usize + 1);
+                debug_assert_eq!(j1 - j0, at.len(), "second versions out of order");
+                let groups = &self.alts.groups[j0 * g..j1 * g];
+                (at, groups, &self.alts.vgroups[j0 * vg..j1 * vg])
+            }
+            _ => (at, &[], &[]),
+        }
+    }
+
     /// In-window mass of histogram slot `k` of the shape at `at`.
     pub(crate) fn mass_of(&self, at: usize, k: usize) -> f64 {
         self.first.mass[at * self.layout.histograms() + k]
@@ -601,6 +681,11 @@ impl Corpus {
     /// Group sums of every shape's first version (`[shape][histogram channel][group]`).
     pub(crate) fn all_groups(&self) -> &[u32] {
         &self.first.groups
+    }
+
+    /// Vector group sums of every shape's first version (`[shape][vector channel][group]`).
+    pub(crate) fn all_vgroups(&self) -> &[f32] {
+        &self.first.vgroups
     }
 
     fn check(&self, e: &Encoded) {
@@ -704,7 +789,7 @@ impl Corpus {
     }
 }
 
-/// Heap bytes of the six arrays of an [`Encoded`] or a [`Corpus`] (capacities, vectors'
+/// Heap bytes of the seven arrays of an [`Encoded`] or a [`Corpus`] (capacities, vectors'
 /// contents included).
 fn arrays_bytes(
     hist: &Vec<u16>,
@@ -713,6 +798,7 @@ fn arrays_bytes(
     mass: &Vec<f64>,
     present: &Vec<bool>,
     vectors: &Vec<Vector>,
+    vgroups: &Vec<f32>,
 ) -> usize {
     hist.capacity() * 2
         + shift.capacity()
@@ -721,6 +807,7 @@ fn arrays_bytes(
         + present.capacity()
         + vectors.capacity() * std::mem::size_of::<Vector>()
         + vectors.iter().map(|v| v.len() * 4).sum::<usize>()
+        + vgroups.capacity() * 4
 }
 
 /// Inserts `items` at `at`, appending without a temporary when `at` is the end.

@@ -1,12 +1,12 @@
 //! Tests of [`crate::search`] (`cargo test --release --lib search`).
 
-use super::corpus::{quantise, total_at, Slot, GROUPS, TOTAL};
-use super::prune::{channel_bound, search, with_margin};
+use super::corpus::{quantise, total_at, Slot, GROUPS, TOTAL, VECTOR_GROUPS};
+use super::prune::{channel_bound, search, vector_bound, with_margin, Bounder};
 use super::score::{histogram, Counts};
 use super::*;
 use crate::ranking::{
-    histogram_dissimilarity, histogram_from_mass, Calibration, Dissimilarity, Histogram, Prepared,
-    PreparedChannel, QuerySpec,
+    histogram_dissimilarity, histogram_from_mass, vector_dissimilarity, Calibration, Dissimilarity,
+    Histogram, Prepared, PreparedChannel, QuerySpec,
 };
 use crate::signature::Aggregation;
 use proptest::prelude::*;
@@ -16,7 +16,11 @@ fn hist(mass: &[f64], width: f64) -> Histogram {
 }
 
 fn layout(names: &[&str], bins: usize, window: f64) -> Layout {
-    Layout::of(&Calibration {
+    Layout::of(&calibration(names, bins, window))
+}
+
+fn calibration(names: &[&str], bins: usize, window: f64) -> Calibration {
+    Calibration {
         epoch: 1,
         spec_key: String::new(),
         channel_names: names.iter().map(|s| s.to_string()).collect(),
@@ -25,7 +29,48 @@ fn layout(names: &[&str], bins: usize, window: f64) -> Layout {
         bandwidth_bins: 1.0,
         percentile: 0.95,
         shapes: 0,
+    }
+}
+
+/// Two histogram channels `t1`, `t2` of 70 bins and a vector channel `v`.
+fn mixed_layout() -> Layout {
+    Layout::of(&Calibration {
+        window_max: vec![3.5, 3.5, 0.0],
+        ..calibration(&["t1", "t2", "v"], 70, 3.5)
     })
+}
+
+/// A shape of [`mixed_layout`].
+fn mixed(t1: &[f64], t2: &[f64], v: Vec<f64>, l: &Layout) -> Encoded {
+    Encoded::from_prepared(
+        &prepared(
+            &["t1", "t2", "v"],
+            vec![
+                Some(PreparedChannel::Histogram(hist(t1, 0.05))),
+                Some(PreparedChannel::Histogram(hist(t2, 0.05))),
+                Some(PreparedChannel::Vector(v)),
+            ],
+        ),
+        l,
+    )
+}
+
+/// Vector values: positive and increasing (as eigenvalues), or of both signs over many
+/// magnitudes (sums that cancel).
+fn vector_values(n: usize) -> impl Strategy<Value = Vec<f64>> {
+    prop_oneof![
+        prop::collection::vec(0.0..10.0f64, n).prop_map(|v| v
+            .iter()
+            .scan(0.0, |acc, x| {
+                *acc += x;
+                Some(*acc)
+            })
+            .collect()),
+        prop::collection::vec(
+            prop_oneof![Just(0.0), -1.0..1.0f64, -1e6..1e6f64, Just(1e-30)],
+            n
+        ),
+    ]
 }
 
 fn prepared(names: &[&str], channels: Vec<Option<PreparedChannel>>) -> Prepared {
@@ -131,6 +176,31 @@ proptest! {
         }
     }
 
+    /// Every vector bound (from the stored `f32` group sums) is below the exact vector
+    /// dissimilarity of the stored `f32` values, for all nine, with sums that cancel.
+    #[test]
+    fn vector_bound_never_exceeds_exact(
+        (a, b) in (1usize..70).prop_flat_map(|n| (vector_values(n), vector_values(n))),
+        near in any::<bool>(),
+    ) {
+        let l = mixed_layout();
+        let t = vec![1.0; 70];
+        // `near`: b is a within a relative 10⁻⁶ (gaps close to the rounding allowance).
+        let b: Vec<f64> = if near {
+            a.iter().zip(&b).map(|(x, y)| x * (1.0 + 1e-6 * y.signum())).collect()
+        } else {
+            b
+        };
+        let (ea, eb) = (mixed(&t, &t, a.clone(), &l), mixed(&t, &t, b, &l));
+        prop_assert_eq!(ea.vgroups.len(), VECTOR_GROUPS);
+        for d in Dissimilarity::all() {
+            let exact = vector_dissimilarity(d, &ea.vectors[0], &eb.vectors[0]);
+            let bound = with_margin(vector_bound(d, &ea.vgroups, &eb.vgroups, a.len()));
+            prop_assert!(bound >= 0.0);
+            prop_assert!(bound <= exact, "{d:?}: bound {bound} > exact {exact}");
+        }
+    }
+
     /// The stated tolerance against the `f64` histograms holds for nL1, L1 and EMD.
     #[test]
     fn scores_within_the_stated_tolerance(
@@ -153,11 +223,11 @@ proptest! {
     }
 
     /// The pruned top-k equals the head of the full ranking filtered by `keep`, bit for bit,
-    /// with ties (duplicated shapes), filters, every dissimilarity and aggregation, and second
-    /// cut versions on the query, on candidates, or on both.
+    /// with ties (duplicated shapes), filters, every dissimilarity and aggregation, a vector
+    /// channel, and second cut versions on the query, on candidates, or on both.
     #[test]
     fn top_k_equals_full_ranking(
-        base in prop::collection::vec((masses(70), masses(70)), 1..12),
+        base in prop::collection::vec((masses(70), masses(70), vector_values(9)), 1..12),
         alts in prop::collection::vec(0usize..24, 12),
         margin in 1.0f64..1.5,
         picks in prop::collection::vec(0usize..1000, 1..80),
@@ -168,18 +238,10 @@ proptest! {
         query in 0usize..1000,
         first_batch in 1usize..6,
     ) {
-        let l = layout(&["t1", "t2"], 70, 3.5);
+        let l = mixed_layout();
         let shapes: Vec<Encoded> = base
             .iter()
-            .map(|(x, y)| {
-                Encoded::from_prepared(&prepared(
-                    &["t1", "t2"],
-                    vec![
-                        Some(PreparedChannel::Histogram(hist(x, 0.05))),
-                        Some(PreparedChannel::Histogram(hist(y, 0.05))),
-                    ],
-                ), &l)
-            })
+            .map(|(x, y, v)| mixed(x, y, v.clone(), &l))
             .collect();
         // Some shapes (those whose draw names another shape) get that shape's first version as
         // their second one.
@@ -199,7 +261,7 @@ proptest! {
         let q = Query::new(
             &QuerySpec {
                 alternate_margin: margin,
-                ..spec(&["t2", "t1"], Dissimilarity::all()[d], AGGREGATIONS[agg])
+                ..spec(&["t2", "v", "t1"], Dissimilarity::all()[d], AGGREGATIONS[agg])
             },
             corpus.layout(),
         );
@@ -410,6 +472,117 @@ fn edits_match_a_rebuilt_corpus() {
         assert_eq!(c.encoded(i), rebuilt.encoded(i));
         assert_eq!(c.encoded(i), arr[i]);
     }
+}
+
+/// The nL1 bounds of the fast loops (over the first versions' rows and over the second
+/// versions' contiguous rows, histograms and vector) equal the per-channel bounds of the module
+/// docs, for candidates with and without a second version, queries with and without one,
+/// across several chunks.
+#[test]
+fn nl1_bounds_of_second_versions() {
+    let l = mixed_layout();
+    let p = |s: f64| {
+        let m = |c: f64| {
+            (0..70)
+                .map(|i| ((i as f64 * s + c).sin() + 1.0).powi(3))
+                .collect::<Vec<_>>()
+        };
+        let v = (1..=20).map(|i| (i as f64 * (1.0 + s)).powf(1.1)).collect();
+        mixed(&m(0.0), &m(1.0), v, &l)
+    };
+    let with_alt = |s: f64, t: f64| {
+        let mut e = p(s);
+        e.alt = Some(Box::new(p(t)));
+        e
+    };
+    let shapes: Vec<Encoded> = (0..9000)
+        .map(|i| {
+            let s = 0.01 * (i % 97) as f64 + 0.05;
+            if i % 3 == 0 {
+                p(s)
+            } else {
+                with_alt(s, 0.013 * (i % 89) as f64 + 0.07)
+            }
+        })
+        .collect();
+    let corpus = Corpus::build(l.clone(), &shapes);
+    let q = Query::new(
+        &spec(&["t2", "v", "t1"], Dissimilarity::NL1, Aggregation::Sum),
+        corpus.layout(),
+    );
+    let f = q.alternate_margin;
+    let g = l.groups;
+    let pair = |a: VersionRef<'_>, b: VersionRef<'_>| {
+        let hist: f64 = (0..2)
+            .map(|k| {
+                let r = k * g..(k + 1) * g;
+                channel_bound(
+                    Dissimilarity::NL1,
+                    &a.groups[r.clone()],
+                    a.mass[k],
+                    &b.groups[r],
+                    b.mass[k],
+                    l.bin_width[k],
+                    &l,
+                )
+            })
+            .sum();
+        with_margin(hist + vector_bound(Dissimilarity::NL1, a.vgroups, b.vgroups, 20))
+    };
+    let keep = |i: usize| i % 7 != 0;
+    for query in [p(0.4), with_alt(0.4, 0.9)] {
+        let qv = query.view();
+        let bounder = Bounder::new(&corpus, &q, qv);
+        let mut got = vec![0.0; corpus.len()];
+        for (c, chunk) in got.chunks_mut(4096).enumerate() {
+            bounder.fill(c * 4096, chunk, &keep);
+        }
+        let mut second_smaller = 0;
+        for (i, &b) in got.iter().enumerate() {
+            if !keep(i) {
+                assert!(b.is_nan(), "position {i} is not kept");
+                continue;
+            }
+            let cand = corpus.shape(i);
+            let first = pair(qv.first, cand.first);
+            let second = match (cand.alt, qv.alt) {
+                (Some(alt), _) => pair(qv.second().first, alt),
+                (None, Some(qalt)) => pair(qalt, cand.first),
+                (None, None) => f64::INFINITY,
+            };
+            let want = first.min(f * second);
+            second_smaller += usize::from(f * second < first);
+            assert!(
+                (b - want).abs() <= 1e-12 * want.max(1e-3),
+                "position {i}: {b} against {want}"
+            );
+        }
+        assert!(second_smaller > 100, "{second_smaller} second pairs bound");
+    }
+}
+
+/// Where the vector channel makes most of the score (a query whose eigenvalues are far from
+/// every stored shape's, as a shape uploaded at another scale), its bound keeps the scan
+/// pruning: without it every candidate's bound would be below the `k`-th score.
+#[test]
+fn vector_channels_are_bounded() {
+    let l = mixed_layout();
+    let flat = vec![1.0; 70];
+    let eig = |s: f64| (1..=50).map(|i| s * i as f64).collect::<Vec<f64>>();
+    let rows: Vec<Encoded> = (0..4000)
+        .map(|i| mixed(&flat, &flat, eig(1.0 + 0.001 * i as f64), &l))
+        .collect();
+    let corpus = Corpus::build(l.clone(), &rows);
+    let q = Query::new(
+        &spec(&["t1", "t2", "v"], Dissimilarity::NL1, Aggregation::Sum),
+        corpus.layout(),
+    );
+    let query = mixed(&flat, &flat, eig(0.5), &l);
+    let (got, scored) = top_k(&corpus, &q, query.view(), 10, &|_| true);
+    let expected: Vec<(usize, f64)> = rank_all(&corpus, &q, query.view())[..10].to_vec();
+    assert_eq!(got, expected);
+    assert_eq!(got[0].0, 0);
+    assert!(scored <= 256, "scored {scored} of 4000");
 }
 
 /// On clustered data the scan scores only a fraction of the candidates exactly.
