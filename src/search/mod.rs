@@ -19,6 +19,7 @@
 
 pub mod corpus;
 pub mod prune;
+mod quantise;
 pub mod score;
 pub mod stage;
 

@@ -33,7 +33,7 @@
 //!
 //! A **vector channel** (ShapeDNA's eigenvalues) is bounded the same way from the sums of its
 //! values over [`VECTOR_GROUPS`] groups ([`vector_bound`]: L1 and nL1 `Σ_g |A_g − B_g|`, L∞
-//! `max_g |A_g − B_g| / w`, the Euclidean distance `(Σ_g (A_g − B_g)²/w)^{1/2}`, each gap
+//! `max_g |A_g − B_g| / w_g`, the Euclidean distance `(Σ_g (A_g − B_g)²/w_g)^{1/2}`, each gap
 //! lowered by an allowance for the sums' `f32` rounding). Without it a query whose eigenvalues
 //! are far from every stored shape's (a shape uploaded at another scale) would bound nothing
 //! and score most of the corpus exactly (`bench search --query-scale 1.3` at 10⁶: 835 391
@@ -332,7 +332,8 @@ impl<'a> Bounder<'a> {
         };
         let nl1_row = match summed {
             // A row sums within `u32`: entries below 2^24 (scale 2^MAX_SHIFT ≤ 2^8), ≤ 255 of them.
-            Some(used) if q.dissimilarity == Dissimilarity::NL1 && stride <= 255 => {
+            // A layout of vector channels only (no group sums) takes the general path.
+            Some(used) if q.dissimilarity == Dissimilarity::NL1 && (1..=255).contains(&stride) => {
                 let mut row = vec![0u32; stride];
                 let (mut slots, mut vectors) = (Vec::new(), Vec::new());
                 for qc in used.into_iter().flatten() {

@@ -403,20 +403,13 @@ fn second_versions_score_the_smaller_comparison() {
 /// Inserting, replacing and removing keep the corpus equal to one built from scratch.
 #[test]
 fn edits_match_a_rebuilt_corpus() {
-    let l = layout(&["a"], 20, 2.0);
+    let l = mixed_layout();
     let p = |s: f64| {
-        Encoded::from_prepared(
-            &prepared(
-                &["a"],
-                vec![Some(PreparedChannel::Histogram(hist(
-                    &(0..20)
-                        .map(|i| (i as f64 * s).sin().abs())
-                        .collect::<Vec<_>>(),
-                    0.1,
-                )))],
-            ),
-            &l,
-        )
+        let m = (0..70)
+            .map(|i| (i as f64 * s).sin().abs())
+            .collect::<Vec<_>>();
+        let v = (0..9).map(|i| i as f64 * s).collect();
+        mixed(&m, &m, v, &l)
     };
     let mut arr = vec![Encoded::absent(&l)];
     let mut c = Corpus::build(l.clone(), &arr);
@@ -583,6 +576,52 @@ fn vector_channels_are_bounded() {
     assert_eq!(got, expected);
     assert_eq!(got[0].0, 0);
     assert!(scored <= 256, "scored {scored} of 4000");
+    // A layout of the vector channel alone (no group sums of histograms), every dissimilarity.
+    let only = Layout::of(&Calibration {
+        window_max: vec![0.0],
+        ..calibration(&["v"], 70, 3.5)
+    });
+    let vector = |s: f64| {
+        let p = prepared(&["v"], vec![Some(PreparedChannel::Vector(eig(s)))]);
+        Encoded::from_prepared(&p, &only)
+    };
+    let rows: Vec<Encoded> = (0..4000).map(|i| vector(1.0 + 0.001 * i as f64)).collect();
+    let corpus = Corpus::build(only.clone(), &rows);
+    for d in Dissimilarity::all() {
+        let q = Query::new(&spec(&["v"], d, Aggregation::Sum), corpus.layout());
+        let query = vector(0.5);
+        let (got, scored) = top_k(&corpus, &q, query.view(), 10, &|_| true);
+        let expected: Vec<(usize, f64)> = rank_all(&corpus, &q, query.view())[..10].to_vec();
+        assert_eq!(got, expected, "{d:?}");
+        assert!(scored <= 256, "{d:?}: scored {scored} of 4000");
+    }
+}
+
+/// A group whose values cancel (2^40 and −2^40 beside a small value) has an `f64` sum that
+/// is off by more than the rounding allowance: it is stored as NaN and bounds nothing, where
+/// its sum would have bounded 128 times the exact dissimilarity.
+#[test]
+fn cancelling_vector_groups_bound_nothing() {
+    let l = mixed_layout();
+    let t = vec![1.0; 70];
+    let v = |f: f64| {
+        let mut v = vec![0.0; 24];
+        v[0] = 2f64.powi(40);
+        v[1] = 2f64.powi(-13) * f;
+        v[2] = -(2f64.powi(40));
+        v
+    };
+    let (a, b) = (
+        mixed(&t, &t, v(1.0 + 2f64.powi(-7)), &l),
+        mixed(&t, &t, v(1.0 - 2f64.powi(-7)), &l),
+    );
+    assert!(a.vgroups[0].is_nan() && b.vgroups[0].is_nan());
+    assert_eq!(a.vgroups[1], 0.0);
+    for d in Dissimilarity::all() {
+        let exact = vector_dissimilarity(d, &a.vectors[0], &b.vectors[0]);
+        assert!(exact > 0.0);
+        assert_eq!(vector_bound(d, &a.vgroups, &b.vgroups, 24), 0.0, "{d:?}");
+    }
 }
 
 /// On clustered data the scan scores only a fraction of the candidates exactly.
