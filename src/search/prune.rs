@@ -396,7 +396,7 @@ impl<'a> Bounder<'a> {
             Some(nl1) => {
                 let (at, rows, vrows) = self.corpus.alt_groups_in(base..base + out.len());
                 let mut second = vec![0.0; at.len()];
-                let rows = Rows {
+                let rows = GroupRows {
                     groups: rows,
                     stride: self.stride,
                     vgroups: vrows,
@@ -437,7 +437,7 @@ impl<'a> Bounder<'a> {
         match &self.nl1_row {
             Some(nl1) => {
                 let end = base + out.len();
-                let rows = Rows {
+                let rows = GroupRows {
                     groups: &self.corpus.all_groups()[base * self.stride..end * self.stride],
                     stride: self.stride,
                     vgroups: &self.corpus.all_vgroups()[base * self.vstride..end * self.vstride],
@@ -508,7 +508,7 @@ impl<'a> Bounder<'a> {
 }
 
 /// Consecutive rows of group sums and vector group sums.
-struct Rows<'r> {
+struct GroupRows<'r> {
     groups: &'r [u32],
     stride: usize,
     vgroups: &'r [f32],
@@ -517,7 +517,7 @@ struct Rows<'r> {
 
 /// [`fill_nl1`] with AVX2 where the CPU has it (runtime dispatch).
 fn nl1_rows(
-    rows: &Rows<'_>,
+    rows: &GroupRows<'_>,
     nl1: &Nl1Row,
     base: usize,
     out: &mut [f64],
@@ -537,7 +537,7 @@ fn nl1_rows(
 /// compiled once for the baseline CPU and once with AVX2.
 #[inline(always)]
 fn fill_nl1(
-    rows: &Rows<'_>,
+    rows: &GroupRows<'_>,
     nl1: &Nl1Row,
     base: usize,
     out: &mut [f64],
@@ -577,7 +577,7 @@ fn fill_nl1(
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn fill_nl1_avx2(
-    rows: &Rows<'_>,
+    rows: &GroupRows<'_>,
     nl1: &Nl1Row,
     base: usize,
     out: &mut [f64],
