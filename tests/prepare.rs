@@ -879,3 +879,43 @@ fn the_default_spec_caps_a_cut_rim_and_leaves_a_long_border_open() {
     assert_eq!((c.loops, c.loops_too_long), (0, 1));
     assert_eq!(r.boundary_loops, 1);
 }
+
+/// Smoothing in preparation (`PrepareOptions::smooth`, `docs/quality.md` §25): the vertex map
+/// and the topology are those of the unsmoothed preparation, noise along the normals is filtered
+/// out, and the options are left out of the JSON when unset (keys of preparations without it
+/// unchanged).
+#[test]
+fn smoothing_in_preparation_keeps_the_map_and_removes_noise() {
+    use shapeseek::mesh::prepare::prepare_with_map;
+    use shapeseek::mesh::smooth::SmoothOptions;
+    let mut noisy = icosphere(4);
+    for (i, p) in noisy.vertices.iter_mut().enumerate() {
+        let h = 2.0 * ((i as f64 * 12.9898).sin() * 43758.5453).rem_euclid(1.0) - 1.0;
+        for c in p.iter_mut() {
+            *c *= 1.0 + 0.03 * h;
+        }
+    }
+    let smooth = PrepareOptions {
+        smooth: Some(SmoothOptions::steps(5)),
+        ..PrepareOptions::default()
+    };
+    let (m0, r0, map0) = prepare_with_map(&noisy, &PrepareOptions::default()).unwrap();
+    let (m1, r1, map1) = prepare_with_map(&noisy, &smooth).unwrap();
+    assert_eq!(map0, map1);
+    assert_eq!(m0.faces, m1.faces);
+    assert_eq!(r0.euler_characteristic, r1.euler_characteristic);
+    assert_ne!(m0.vertices, m1.vertices);
+    // The noise added area, the smoothing took most of it away (the report's area is before
+    // normalisation).
+    let clean = icosphere(4).area();
+    assert!(r1.original_area < r0.original_area);
+    assert!((r1.original_area / clean - 1.0).abs() < 0.5 * (r0.original_area / clean - 1.0));
+    let json = serde_json::to_string(&PrepareOptions::default()).unwrap();
+    assert!(!json.contains("smooth"), "{json}");
+    let bad = PrepareOptions {
+        smooth: Some(SmoothOptions::steps(0)),
+        ..PrepareOptions::default()
+    };
+    let e = prepare(&noisy, &bad).unwrap_err().to_string();
+    assert!(e.contains("smooth: steps"), "{e}");
+}

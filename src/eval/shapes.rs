@@ -115,7 +115,7 @@ pub(super) fn process_shape(
     // Group the specs by the analysis they need (first occurrence first).
     let mut groups: Vec<(Vec<u8>, AnalyzeOptions, Vec<usize>)> = Vec::new();
     for (i, spec) in specs.iter().enumerate() {
-        let (o, j) = if spec.cut_handles.is_none() && spec.cap_boundaries.is_none() {
+        let (o, j) = if !spec.has_own_preparation() {
             (opts.clone(), opts_json.to_vec())
         } else {
             let o = spec.analysis_options(opts);

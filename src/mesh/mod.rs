@@ -8,6 +8,7 @@ pub mod generate;
 pub mod prepare;
 pub mod read;
 pub mod samples;
+pub mod smooth;
 pub mod topology;
 pub mod weld;
 pub mod write;

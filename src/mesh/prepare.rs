@@ -22,6 +22,9 @@
 //!    relative order of their first input index. Fewer than [`PrepareOptions::min_vertices`]
 //!    vertices or [`PrepareOptions::min_faces`] triangles left is refused (`mesh.too_few_vertices`,
 //!    `mesh.too_few_faces`): one triangle, or 500 copies of it, has no spectrum worth storing.
+//!    5-. **Smoothing** (optional, [`PrepareOptions::smooth`]): Taubin's low-pass filter
+//!    ([`crate::mesh::smooth`]) removes noise at the scale of the edges before the steps that
+//!    read the geometry.
 //!    5a. **Boundary capping** (optional, [`PrepareOptions::cap_boundaries`]): boundary loops
 //!    up to a length bound closed by caps ([`crate::mesh::cap`]). 5b. **Handle cutting** (optional,
 //!    [`PrepareOptions::cut_handles`]).
@@ -36,6 +39,7 @@
 //! fall into neighbouring grid cells.
 
 use super::cap::{cap_boundaries, CapOptions, CapStats};
+use super::smooth::{taubin, SmoothOptions};
 use super::topology::{cut_handles_with_map, HandleCutOptions};
 use super::{cross, norm, sub, Mesh};
 use crate::error::DegenerateKind;
@@ -99,6 +103,11 @@ pub struct PrepareOptions {
     /// it are unchanged.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cap_boundaries: Option<CapOptions>,
+    /// Optional **smoothing** (step 5-, [`crate::mesh::smooth::taubin`]) of the kept surface
+    /// before capping, handle cutting and normalisation. Default `None`; omitted from the JSON
+    /// when `None`, so the keys of preparations without it are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub smooth: Option<SmoothOptions>,
 }
 
 impl Default for PrepareOptions {
@@ -113,6 +122,7 @@ impl Default for PrepareOptions {
             min_area_kept: 0.5,
             cut_handles: None,
             cap_boundaries: None,
+            smooth: None,
         }
     }
 }
@@ -425,6 +435,11 @@ pub fn prepare_with_map(
             ),
         });
     }
+    // 5-. Smoothing (optional): vertices move, none is added or removed, so `map` holds.
+    if let Some(sm) = &opts.smooth {
+        let m = taubin(&Mesh::new(vertices, faces), sm);
+        (vertices, faces) = (m.vertices, m.faces);
+    }
     // 5a. Boundary capping (optional): cap vertices and faces are appended, so `map` holds.
     let mut capped = None;
     if let Some(cap) = &opts.cap_boundaries {
@@ -444,6 +459,7 @@ pub fn prepare_with_map(
                     weld_tolerance: None,
                     cut_handles: None,
                     cap_boundaries: None,
+                    smooth: None,
                     ..opts.clone()
                 };
                 let (out, mut r, map2) = prepare_with_map(&cut_mesh, &inner)?;
@@ -581,6 +597,10 @@ fn validate_options(opts: &PrepareOptions) -> Result<()> {
     if let Some(c) = &opts.cap_boundaries {
         c.validate()
             .map_err(|e| Error::InvalidArgument(format!("cap_boundaries: {e}")))?;
+    }
+    if let Some(c) = &opts.smooth {
+        c.validate()
+            .map_err(|e| Error::InvalidArgument(format!("smooth: {e}")))?;
     }
     if let Some(c) = &opts.cut_handles {
         if !c.remove_band {

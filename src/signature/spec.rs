@@ -2,6 +2,7 @@
 //! the pair quadrature and the sketch resolution, with their validation and stable names/keys.
 
 use crate::mesh::cap::CapOptions;
+use crate::mesh::smooth::SmoothOptions;
 use crate::mesh::topology::HandleCutOptions;
 use crate::scale::SpectrumScaling;
 use crate::spectrum::AnalyzeOptions;
@@ -441,6 +442,12 @@ pub struct SignatureSpec {
     /// JSON (and key) when `None`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cap_boundaries: Option<CapOptions>,
+    /// Taubin smoothing before the spectrum ([`crate::mesh::smooth`], `docs/quality.md` §25):
+    /// noise at the scale of the edges is filtered out before capping and handle cutting, for
+    /// both versions. A preparation step like [`SignatureSpec::cut_handles`]
+    /// ([`SignatureSpec::analysis_options`]). Omitted from the JSON (and key) when `None`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub smooth: Option<SmoothOptions>,
 }
 
 impl Default for SignatureSpec {
@@ -459,6 +466,7 @@ impl Default for SignatureSpec {
             cut_handles: None,
             alternate_cut: None,
             cap_boundaries: None,
+            smooth: None,
         }
     }
 }
@@ -482,31 +490,41 @@ impl SignatureSpec {
         format!("{}{}", hex::encode(&digest[..12]), crate::revision_tag())
     }
 
+    /// Whether this spec asks for a preparation of its own (smoothing, capping, handle
+    /// cutting), so that its shapes cannot share the analysis of a spec without one.
+    pub fn has_own_preparation(&self) -> bool {
+        self.cut_handles.is_some() || self.cap_boundaries.is_some() || self.smooth.is_some()
+    }
+
     /// The analysis options a shape must be analysed with for this spec: `base` with this
-    /// spec's boundary capping and handle cutting, when it has them (otherwise `base`
+    /// spec's smoothing, boundary capping and handle cutting, when it has them (otherwise `base`
     /// unchanged).
     pub fn analysis_options(&self, base: &AnalyzeOptions) -> AnalyzeOptions {
-        let mut o = match &self.cut_handles {
+        let o = match &self.cut_handles {
             Some(c) => with_cut(base, c),
             None => base.clone(),
         };
-        if self.cap_boundaries.is_some() {
-            o.prepare.cap_boundaries = self.cap_boundaries;
-        }
-        o
+        self.with_shared_preparation(o)
     }
 
     /// The analysis options of the second version ([`SignatureSpec::alternate_cut`]): `base`
-    /// with the spec's capping and the alternate cut in place of the first; `None` without an
-    /// alternate cut.
+    /// with the spec's smoothing and capping and the alternate cut in place of the first; `None`
+    /// without an alternate cut.
     pub fn alternate_analysis_options(&self, base: &AnalyzeOptions) -> Option<AnalyzeOptions> {
-        self.alternate_cut.as_ref().map(|c| {
-            let mut o = with_cut(base, c);
-            if self.cap_boundaries.is_some() {
-                o.prepare.cap_boundaries = self.cap_boundaries;
-            }
-            o
-        })
+        self.alternate_cut
+            .as_ref()
+            .map(|c| self.with_shared_preparation(with_cut(base, c)))
+    }
+
+    /// `o` with the preparation steps both versions share: smoothing and capping.
+    fn with_shared_preparation(&self, mut o: AnalyzeOptions) -> AnalyzeOptions {
+        if self.cap_boundaries.is_some() {
+            o.prepare.cap_boundaries = self.cap_boundaries;
+        }
+        if self.smooth.is_some() {
+            o.prepare.smooth = self.smooth;
+        }
+        o
     }
 
     /// The fewest eigenpairs an analysis needs for this spec: one more than the longest
@@ -583,6 +601,9 @@ pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
     }
     if let Some(Err(e)) = spec.cap_boundaries.map(|c| c.validate()) {
         return bad(format!("cap_boundaries: {e}"));
+    }
+    if let Some(Err(e)) = spec.smooth.map(|c| c.validate()) {
+        return bad(format!("smooth: {e}"));
     }
     let check_t = |t: f64| t.is_finite() && t > 0.0;
     match spec.spectrum_scaling {

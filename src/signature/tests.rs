@@ -928,3 +928,39 @@ fn lp_quadrature_error() {
         }
     }
 }
+
+/// A spec's smoothing reaches both versions' preparation, changes the key only when set, and is
+/// validated like the other preparation steps (`docs/quality.md` §25).
+#[test]
+fn smoothing_is_a_preparation_step_of_both_versions() {
+    use crate::mesh::smooth::SmoothOptions;
+    use crate::mesh::topology::HandleCutOptions;
+    let plain = SignatureSpec::with_channels(heat6());
+    assert!(!plain.has_own_preparation());
+    assert!(!serde_json::to_string(&plain).unwrap().contains("smooth"));
+    let spec = SignatureSpec {
+        smooth: Some(SmoothOptions::steps(5)),
+        alternate_cut: Some(HandleCutOptions::default()),
+        ..plain.clone()
+    };
+    assert!(spec.has_own_preparation());
+    assert_ne!(spec.key(), plain.key());
+    let base = AnalyzeOptions::default();
+    assert_eq!(
+        spec.analysis_options(&base).prepare.smooth,
+        Some(SmoothOptions::steps(5))
+    );
+    let alt = spec.alternate_analysis_options(&base).unwrap();
+    assert_eq!(alt.prepare.smooth, Some(SmoothOptions::steps(5)));
+    assert!(alt.prepare.cut_handles.is_some());
+    assert_eq!(plain.analysis_options(&base).prepare, base.prepare);
+    let bad = SignatureSpec {
+        smooth: Some(SmoothOptions {
+            mu: -0.1,
+            ..SmoothOptions::steps(5)
+        }),
+        ..plain
+    };
+    let e = super::spec::validate_spec(&bad).unwrap_err().to_string();
+    assert!(e.contains("smooth: mu"), "{e}");
+}

@@ -1,0 +1,439 @@
+//! **Taubin smoothing**: a low-pass filter of the surface before its spectrum is computed
+//! (G. Taubin, *A signal processing approach to fair surface design*, SIGGRAPH 1995).
+//!
+//! Each step moves every vertex twice towards the mean of its neighbours, by `λ` and then by `μ`
+//! (`μ < −λ < 0`, the second move pushes back): `x ← x + λ (W x − x)`, then
+//! `x ← x + μ (W x − x)`, `W` the umbrella operator (the plain mean of the neighbours). For a
+//! surface frequency `k` (an eigenvalue of `I − W`) one step multiplies its component by
+//! `(1 − λk)(1 − μk)`: 1 at `k = 0`, above 1 just below the pass-band frequency
+//! `k_PB = 1/λ + 1/μ` (0.113 for the defaults `λ = 0.5`, `μ = −0.53`), and far below 1 at the
+//! high frequencies, so noise at the scale of the edges is removed while the overall shape keeps
+//! its size — plain umbrella smoothing would shrink it.
+//!
+//! **Boundaries.** A vertex on a boundary edge (an edge of exactly one face) moves towards the
+//! mean of its neighbours *along the boundary* only, so a boundary curve is smoothed as a curve
+//! and is not pulled into the surface (a hole would otherwise widen). Interior vertices use all
+//! their neighbours. A vertex on a non-manifold edge (more than two faces) does not move.
+//!
+//! **Why here.** Normal noise of a few tenths of an edge length adds area unevenly — most where
+//! the edges are short — so it changes the intrinsic geometry that every spectral descriptor
+//! reads; on human figures, which differ from one another by little, it mixes them up
+//! (`docs/quality.md` §25). A few steps remove it and leave the low modes of the clean shapes
+//! nearly unchanged.
+//!
+//! The umbrella weights depend on the triangulation (they also even out the vertex spacing); it
+//! is a preparation step, not an intrinsic operator.
+//!
+//! **Safeguard.** On irregular meshes unguarded umbrella steps turn faces over and make slivers
+//! (a decimated horse, a remeshed face mask: faces of 10⁻⁴ of the mean area after 10 steps, and
+//! the eigensolver then does not converge). A move that would shrink a face below
+//! [`MIN_AREA_KEPT`] of its input area is taken back for that face's vertices.
+//!
+//! Deterministic; `O(steps · F)`.
+
+use super::Mesh;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+
+/// Options of [`taubin`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SmoothOptions {
+    /// Number of `λ`/`μ` step pairs (1..=100).
+    pub steps: usize,
+    /// The smoothing factor `λ`, in `(0, 0.5]`.
+    pub lambda: f64,
+    /// The inflating factor `μ`, in `(−1, −λ)`, with `(1 − 2λ)(1 − 2μ) ≤ 1` (no frequency of
+    /// the umbrella operator, at most 2, is amplified).
+    pub mu: f64,
+}
+
+impl SmoothOptions {
+    /// `steps` pairs with Taubin's usual factors `λ = 0.5`, `μ = −0.53`.
+    pub const fn steps(steps: usize) -> Self {
+        Self {
+            steps,
+            lambda: 0.5,
+            mu: -0.53,
+        }
+    }
+
+    /// Why these options cannot be used, if they cannot.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(1..=100).contains(&self.steps) {
+            return Err(format!("steps must be in 1..=100, got {}", self.steps));
+        }
+        if !(self.lambda > 0.0 && self.lambda <= 0.5) {
+            return Err(format!("lambda must be in (0, 0.5], got {}", self.lambda));
+        }
+        if !(self.mu > -1.0 && self.mu < -self.lambda) {
+            return Err(format!(
+                "mu must be in (-1, -lambda) = (-1, {}), got {}",
+                -self.lambda, self.mu
+            ));
+        }
+        // The umbrella operator's frequencies reach 2: there a step multiplies by
+        // (1 − 2λ)(1 − 2μ), which must not amplify.
+        let top = (1.0 - 2.0 * self.lambda) * (1.0 - 2.0 * self.mu);
+        if top > 1.0 {
+            return Err(format!(
+                "(1 - 2 lambda)(1 - 2 mu) = {top} amplifies the highest frequencies (must be ≤ 1)"
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// `mesh` smoothed by `opts.steps` Taubin step pairs (module docs). Faces are unchanged; vertices
+/// referenced by no face do not move.
+pub fn taubin(mesh: &Mesh, opts: &SmoothOptions) -> Mesh {
+    let (start, nbr) = neighbours(mesh);
+    let normal0: Vec<[f64; 3]> = mesh
+        .faces
+        .iter()
+        .map(|f| face_normal(&mesh.vertices, f))
+        .collect();
+    let mut x = mesh.vertices.clone();
+    let mut next = x.clone();
+    for _ in 0..opts.steps {
+        for f in [opts.lambda, opts.mu] {
+            for (v, out) in next.iter_mut().enumerate() {
+                let ns = &nbr[start[v]..start[v + 1]];
+                let p = x[v];
+                if ns.is_empty() {
+                    *out = p;
+                    continue;
+                }
+                let mut m = [0.0; 3];
+                for &u in ns {
+                    let q = x[u as usize];
+                    for i in 0..3 {
+                        m[i] += q[i];
+                    }
+                }
+                let inv = 1.0 / ns.len() as f64;
+                for i in 0..3 {
+                    out[i] = p[i] + f * (m[i] * inv - p[i]);
+                }
+            }
+            keep_faces_valid(&mesh.faces, &normal0, &x, &mut next);
+            std::mem::swap(&mut x, &mut next);
+        }
+    }
+    Mesh {
+        vertices: x,
+        faces: mesh.faces.clone(),
+        repairs: mesh.repairs.clone(),
+    }
+}
+
+/// Smallest area a face may shrink to under smoothing, as a fraction of its input area.
+pub const MIN_AREA_KEPT: f64 = 0.1;
+
+/// The safeguard of a smoothing move from `prev` to `next`: a face that the move would shrink
+/// below [`MIN_AREA_KEPT`] of its input area gets its vertices moved back to `prev`, until no face
+/// does. On irregular meshes (decimations, remeshed boundaries) unguarded umbrella steps make
+/// slivers of a ten-thousandth of the mean area, and the eigensolver then does not converge
+/// (`docs/quality.md` §25). Orientation is not tested: the cotangent operator reads a triangle's
+/// edge lengths only, and on a noisy surface smoothing *should* turn faces over where the noise
+/// folded it (a guard against turning over, measured, kept much of the noise, §25). `prev`
+/// passes the test (the input does, every accepted step does), so moving every vertex back ends
+/// it. A face of zero input area keeps its vertices where they are.
+fn keep_faces_valid(
+    faces: &[[u32; 3]],
+    normal0: &[[f64; 3]],
+    prev: &[[f64; 3]],
+    next: &mut [[f64; 3]],
+) {
+    let bad = |next: &[[f64; 3]], fi: usize| {
+        let n = face_normal(next, &faces[fi]);
+        let n0 = normal0[fi];
+        let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let min = MIN_AREA_KEPT * MIN_AREA_KEPT * dot(n0, n0);
+        dot(n, n) < min || min == 0.0
+    };
+    // Each pass moves at least one vertex back for good, so this ends; in practice after a
+    // pass or two (reverting a vertex changes its other faces, hence the repeat).
+    loop {
+        let mut reverted = false;
+        for (fi, f) in faces.iter().enumerate() {
+            if bad(next, fi) {
+                for &v in f {
+                    let v = v as usize;
+                    if next[v] != prev[v] {
+                        next[v] = prev[v];
+                        reverted = true;
+                    }
+                }
+            }
+        }
+        if !reverted {
+            return;
+        }
+    }
+}
+
+/// The (unnormalised) normal of face `f`: twice its area, along its orientation.
+fn face_normal(x: &[[f64; 3]], f: &[u32; 3]) -> [f64; 3] {
+    let [a, b, c] = f.map(|i| x[i as usize]);
+    super::cross(super::sub(b, a), super::sub(c, a))
+}
+
+/// CSR neighbour lists of the umbrella operator: an interior vertex's edge neighbours, a
+/// boundary vertex's neighbours along boundary edges, none for a vertex on a non-manifold edge.
+fn neighbours(mesh: &Mesh) -> (Vec<usize>, Vec<u32>) {
+    let n = mesh.vertices.len();
+    let mut faces_of_edge: HashMap<(u32, u32), u32> = HashMap::with_capacity(mesh.faces.len() * 3);
+    for f in &mesh.faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            *faces_of_edge.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+        }
+    }
+    // 0: interior, 1: on a boundary edge, 2: on a non-manifold edge.
+    let mut kind = vec![0u8; n];
+    for (&(a, b), &c) in &faces_of_edge {
+        let k = match c {
+            1 => 1,
+            2 => 0,
+            _ => 2,
+        };
+        for v in [a, b] {
+            kind[v as usize] = kind[v as usize].max(k);
+        }
+    }
+    let mut edges: Vec<(u32, u32)> = Vec::with_capacity(faces_of_edge.len() * 2);
+    for (&(a, b), &c) in &faces_of_edge {
+        for (v, u) in [(a, b), (b, a)] {
+            let used = match kind[v as usize] {
+                0 => true,
+                1 => c == 1,
+                _ => false,
+            };
+            if used {
+                edges.push((v, u));
+            }
+        }
+    }
+    // Sorted so that the sums run in a fixed order whatever the hash map's.
+    edges.sort_unstable();
+    let mut start = vec![0usize; n + 1];
+    for &(v, _) in &edges {
+        start[v as usize + 1] += 1;
+    }
+    for v in 0..n {
+        start[v + 1] += start[v];
+    }
+    (start, edges.into_iter().map(|(_, u)| u).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::generate;
+
+    /// Mean length of `x − W x`: the high-frequency content the filter removes.
+    fn roughness(m: &Mesh) -> f64 {
+        let (start, nbr) = neighbours(m);
+        let mut sum = 0.0;
+        for (v, p) in m.vertices.iter().enumerate() {
+            let ns = &nbr[start[v]..start[v + 1]];
+            let mut d = [0.0; 3];
+            for &u in ns {
+                for i in 0..3 {
+                    d[i] += m.vertices[u as usize][i] / ns.len() as f64;
+                }
+            }
+            sum += ((d[0] - p[0]).powi(2) + (d[1] - p[1]).powi(2) + (d[2] - p[2]).powi(2)).sqrt();
+        }
+        sum / m.vertices.len() as f64
+    }
+
+    #[test]
+    fn removes_noise_and_keeps_the_size() {
+        let sphere = generate::icosphere(4);
+        let mut noisy = sphere.clone();
+        for (i, v) in noisy.vertices.iter_mut().enumerate() {
+            // Deterministic radial noise in [-1, 1) of 2 % of the radius.
+            let h = 2.0 * (((i as f64 * 12.9898).sin() * 43758.5453).rem_euclid(1.0)) - 1.0;
+            for c in v.iter_mut() {
+                *c *= 1.0 + 0.02 * h;
+            }
+        }
+        let smooth = taubin(&noisy, &SmoothOptions::steps(5));
+        let (r0, r1, r2) = (roughness(&sphere), roughness(&noisy), roughness(&smooth));
+        assert!(r1 > 2.0 * r0, "{r0} {r1}");
+        assert!(
+            r2 < r0 + 0.25 * (r1 - r0),
+            "clean {r0}, noisy {r1}, smoothed {r2}"
+        );
+        // Taubin's filter keeps the size (the mean radius); umbrella smoothing alone (μ ≈ 0)
+        // shrinks the sphere.
+        let radius = |m: &Mesh| {
+            m.vertices
+                .iter()
+                .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
+                .sum::<f64>()
+                / m.vertices.len() as f64
+        };
+        let unbalanced = taubin(
+            &noisy,
+            &SmoothOptions {
+                steps: 5,
+                lambda: 0.5,
+                mu: -0.0001,
+            },
+        );
+        let (r_noisy, r_taubin, r_plain) = (radius(&noisy), radius(&smooth), radius(&unbalanced));
+        assert!(
+            (r_taubin / r_noisy - 1.0).abs() < 0.001 && r_plain / r_noisy < 0.995,
+            "mean radius {r_noisy}: Taubin {r_taubin}, without the inflating step {r_plain}"
+        );
+        assert_eq!(smooth.faces, noisy.faces);
+    }
+
+    #[test]
+    fn a_plane_stays_a_plane() {
+        // A flat grid stays in z = 0 (every mean of points of the plane is in it); its border is
+        // smoothed as a curve (the corners round off a little), the area stays within 2 %.
+        let g = generate::rectangle(2.0, 1.5, 12, 9);
+        let s = taubin(&g, &SmoothOptions::steps(10));
+        assert!(s.vertices.iter().all(|v| v[2] == 0.0));
+        let ratio = s.area() / g.area();
+        assert!((ratio - 1.0).abs() < 0.02, "area ratio {ratio}");
+    }
+
+    #[test]
+    fn a_hole_is_not_widened() {
+        // A unit sphere without its cap above z = 0.875: the rim moves along the rim only. Had
+        // the rim vertices used all their neighbours, all of which lie below, the rim would be
+        // dragged down and the hole would grow.
+        let sphere = generate::icosphere(4);
+        let mut holed = sphere.clone();
+        holed
+            .faces
+            .retain(|f| f.iter().all(|&v| sphere.vertices[v as usize][2] < 0.875));
+        // The rim: the vertices of the edges of one face.
+        let mut count: HashMap<(u32, u32), u32> = HashMap::new();
+        for f in &holed.faces {
+            for k in 0..3 {
+                let (a, b) = (f[k], f[(k + 1) % 3]);
+                *count.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+            }
+        }
+        let mut rim: Vec<u32> = count
+            .iter()
+            .filter(|&(_, &c)| c == 1)
+            .flat_map(|(&(a, b), _)| [a, b])
+            .collect();
+        rim.sort_unstable();
+        rim.dedup();
+        assert!(rim.len() >= 20, "{}", rim.len());
+        let mean = |m: &Mesh, f: &dyn Fn(&[f64; 3]) -> f64| {
+            rim.iter().map(|&v| f(&m.vertices[v as usize])).sum::<f64>() / rim.len() as f64
+        };
+        let s = taubin(&holed, &SmoothOptions::steps(10));
+        let z = |p: &[f64; 3]| p[2];
+        let r = |p: &[f64; 3]| p[0].hypot(p[1]);
+        let (z0, z1) = (mean(&holed, &z), mean(&s, &z));
+        let (r0, r1) = (mean(&holed, &r), mean(&s, &r));
+        assert!(
+            (z1 - z0).abs() < 0.005 && (r1 / r0 - 1.0).abs() < 0.01,
+            "rim z {z0} -> {z1}, radius {r0} -> {r1}"
+        );
+        let ratio = s.area() / holed.area();
+        assert!(ratio > 0.99, "area ratio {ratio}");
+    }
+
+    #[test]
+    fn no_face_collapses_and_noise_still_goes() {
+        // Strong noise (a third of an edge) and many steps.
+        let sphere = generate::icosphere(3);
+        let mut noisy = sphere.clone();
+        for (i, v) in noisy.vertices.iter_mut().enumerate() {
+            let h = 2.0 * (((i as f64 * 78.233).sin() * 43758.5453).rem_euclid(1.0)) - 1.0;
+            let g = 2.0 * (((i as f64 * 12.9898).sin() * 24634.6345).rem_euclid(1.0)) - 1.0;
+            v[0] += 0.05 * h;
+            v[1] += 0.05 * g;
+        }
+        let strong = SmoothOptions {
+            steps: 20,
+            lambda: 0.5,
+            mu: -0.6,
+        };
+        let smallest_area_ratio = |m: &Mesh| {
+            m.faces
+                .iter()
+                .map(|f| {
+                    let (n, o) = (face_normal(&m.vertices, f), face_normal(&noisy.vertices, f));
+                    ((n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+                        / (o[0] * o[0] + o[1] * o[1] + o[2] * o[2]))
+                        .sqrt()
+                })
+                .fold(f64::INFINITY, f64::min)
+        };
+        let s = taubin(&noisy, &strong);
+        assert!(smallest_area_ratio(&s) >= MIN_AREA_KEPT);
+        // And the guarded result is still smoother than the input.
+        assert!(
+            roughness(&s) < 0.5 * roughness(&noisy),
+            "{} {}",
+            roughness(&s),
+            roughness(&noisy)
+        );
+    }
+
+    #[test]
+    fn the_safeguard_takes_back_slivers_only() {
+        let g = generate::rectangle(1.0, 1.0, 4, 4);
+        let n0: Vec<[f64; 3]> = g
+            .faces
+            .iter()
+            .map(|f| face_normal(&g.vertices, f))
+            .collect();
+        // Vertex 6 = (0.25, 0.25) is interior; vertex 17 = (0.5, 0.75) too.
+        assert_eq!(g.vertices[6], [0.25, 0.25, 0.0]);
+        assert_eq!(g.vertices[17], [0.5, 0.75, 0.0]);
+        let mut next = g.vertices.clone();
+        next[17] = [0.51, 0.76, 0.0]; // a small move: kept
+        next[0] = [0.01, 0.0, 0.0]; // a corner sliding along its side: kept
+        keep_faces_valid(&g.faces, &n0, &g.vertices, &mut next);
+        assert_eq!(next[17], [0.51, 0.76, 0.0]);
+        assert_eq!(next[0], [0.01, 0.0, 0.0]);
+        // Onto the line through two of its neighbours: its faces there collapse to slivers.
+        let mut next = g.vertices.clone();
+        next[6] = [0.25, 0.5 - 1e-3, 0.0];
+        keep_faces_valid(&g.faces, &n0, &g.vertices, &mut next);
+        assert_eq!(next[6], g.vertices[6]);
+    }
+
+    #[test]
+    fn validates_its_options() {
+        assert!(SmoothOptions::steps(5).validate().is_ok());
+        assert!(SmoothOptions::steps(0).validate().is_err());
+        assert!(SmoothOptions::steps(101).validate().is_err());
+        let bad_mu = SmoothOptions {
+            mu: -0.4,
+            ..SmoothOptions::steps(5)
+        };
+        assert!(bad_mu.validate().unwrap_err().contains("mu"));
+        let bad_lambda = SmoothOptions {
+            lambda: 0.6,
+            mu: -0.7,
+            ..SmoothOptions::steps(5)
+        };
+        assert!(bad_lambda.validate().unwrap_err().contains("lambda"));
+        let amplifying = SmoothOptions {
+            lambda: 0.1,
+            mu: -0.9,
+            ..SmoothOptions::steps(5)
+        };
+        assert!(amplifying.validate().unwrap_err().contains("amplifies"));
+        assert!(SmoothOptions {
+            lambda: 0.4,
+            mu: -0.9,
+            ..SmoothOptions::steps(5)
+        }
+        .validate()
+        .is_ok());
+    }
+}
