@@ -705,8 +705,13 @@ fn spectral_gw_stage_equals_library_scores() {
     let s = Server::start(dir.path(), |_| {});
     let a = s.addr;
     let shapes = ingest_corpus(a);
-    let mut opts = shapeseek::spectrum::AnalyzeOptions::default();
-    opts.eigen.k = K;
+    let mut base = shapeseek::spectrum::AnalyzeOptions::default();
+    base.eigen.k = K;
+    // The server's payloads come from the analysis of the default spec's preparation
+    // (smoothing, capping, handle cutting).
+    let opts = shapeseek::presets::default_config()
+        .signature
+        .analysis_options(&base);
     let payloads: Vec<GwPayload> = shapes
         .iter()
         .map(|(.., bytes)| {
