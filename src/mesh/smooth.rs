@@ -231,6 +231,12 @@ mod tests {
     use super::*;
     use crate::mesh::generate;
 
+    /// A deterministic pseudo-random number in [-1, 1) for vertex `i` (the fractional part of a
+    /// scaled sine).
+    fn hash_unit(i: usize, freq: f64, scale: f64) -> f64 {
+        2.0 * ((i as f64 * freq).sin() * scale).rem_euclid(1.0) - 1.0
+    }
+
     /// Mean length of `x − W x`: the high-frequency content the filter removes.
     fn roughness(m: &Mesh) -> f64 {
         let (start, nbr) = neighbours(m);
@@ -254,7 +260,7 @@ mod tests {
         let mut noisy = sphere.clone();
         for (i, v) in noisy.vertices.iter_mut().enumerate() {
             // Deterministic radial noise in [-1, 1) of 2 % of the radius.
-            let h = 2.0 * (((i as f64 * 12.9898).sin() * 43758.5453).rem_euclid(1.0)) - 1.0;
+            let h = hash_unit(i, 12.9898, 43758.5453);
             for c in v.iter_mut() {
                 *c *= 1.0 + 0.02 * h;
             }
@@ -350,8 +356,10 @@ mod tests {
         let sphere = generate::icosphere(3);
         let mut noisy = sphere.clone();
         for (i, v) in noisy.vertices.iter_mut().enumerate() {
-            let h = 2.0 * (((i as f64 * 78.233).sin() * 43758.5453).rem_euclid(1.0)) - 1.0;
-            let g = 2.0 * (((i as f64 * 12.9898).sin() * 24634.6345).rem_euclid(1.0)) - 1.0;
+            let (h, g) = (
+                hash_unit(i, 78.233, 43758.5453),
+                hash_unit(i, 12.9898, 24634.6345),
+            );
             v[0] += 0.05 * h;
             v[1] += 0.05 * g;
         }
