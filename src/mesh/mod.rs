@@ -3,6 +3,7 @@
 //! Everything here is pure and synchronous: bytes in, [`Mesh`] out. Nothing knows of HTTP or
 //! storage.
 
+pub(crate) mod buckets;
 pub mod cap;
 pub mod generate;
 pub mod prepare;

@@ -31,6 +31,7 @@
 //!
 //! Deterministic; `O(steps · F)`.
 
+use super::buckets::Buckets;
 use super::Mesh;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -86,7 +87,7 @@ impl SmoothOptions {
 /// `mesh` smoothed by `opts.steps` Taubin step pairs (module docs). Faces are unchanged; vertices
 /// referenced by no face do not move.
 pub fn taubin(mesh: &Mesh, opts: &SmoothOptions) -> Mesh {
-    let (start, nbr) = neighbours(mesh);
+    let nbr = neighbours(mesh);
     let normal0: Vec<[f64; 3]> = mesh
         .faces
         .iter()
@@ -97,7 +98,7 @@ pub fn taubin(mesh: &Mesh, opts: &SmoothOptions) -> Mesh {
     for _ in 0..opts.steps {
         for f in [opts.lambda, opts.mu] {
             for (v, out) in next.iter_mut().enumerate() {
-                let ns = &nbr[start[v]..start[v + 1]];
+                let ns = nbr.get(v);
                 let p = x[v];
                 if ns.is_empty() {
                     *out = p;
@@ -178,9 +179,9 @@ fn face_normal(x: &[[f64; 3]], f: &[u32; 3]) -> [f64; 3] {
     super::cross(super::sub(b, a), super::sub(c, a))
 }
 
-/// CSR neighbour lists of the umbrella operator: an interior vertex's edge neighbours, a
+/// Neighbour lists of the umbrella operator: an interior vertex's edge neighbours, a
 /// boundary vertex's neighbours along boundary edges, none for a vertex on a non-manifold edge.
-fn neighbours(mesh: &Mesh) -> (Vec<usize>, Vec<u32>) {
+fn neighbours(mesh: &Mesh) -> Buckets<u32> {
     let n = mesh.vertices.len();
     let mut faces_of_edge: HashMap<(u32, u32), u32> = HashMap::with_capacity(mesh.faces.len() * 3);
     for f in &mesh.faces {
@@ -216,14 +217,7 @@ fn neighbours(mesh: &Mesh) -> (Vec<usize>, Vec<u32>) {
     }
     // Sorted so that the sums run in a fixed order whatever the hash map's.
     edges.sort_unstable();
-    let mut start = vec![0usize; n + 1];
-    for &(v, _) in &edges {
-        start[v as usize + 1] += 1;
-    }
-    for v in 0..n {
-        start[v + 1] += start[v];
-    }
-    (start, edges.into_iter().map(|(_, u)| u).collect())
+    Buckets::new(n, edges)
 }
 
 #[cfg(test)]
@@ -239,10 +233,10 @@ mod tests {
 
     /// Mean length of `x − W x`: the high-frequency content the filter removes.
     fn roughness(m: &Mesh) -> f64 {
-        let (start, nbr) = neighbours(m);
+        let nbr = neighbours(m);
         let mut sum = 0.0;
         for (v, p) in m.vertices.iter().enumerate() {
-            let ns = &nbr[start[v]..start[v + 1]];
+            let ns = nbr.get(v);
             let mut d = [0.0; 3];
             for &u in ns {
                 for i in 0..3 {

@@ -1,17 +1,17 @@
 //! Where distances are evaluated: the mesh edge graph, geodesic farthest-point sampling with
 //! Voronoi cells (the pair quadrature), and the near field of adjacent cells.
 
+use crate::mesh::buckets::Buckets;
 use crate::mesh::{norm, sub, Mesh};
 use faer::{Mat, MatRef};
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
-/// The undirected edge graph of a mesh (CSR, Euclidean edge lengths).
+/// The undirected edge graph of a mesh: per vertex, its neighbours and the Euclidean edge
+/// lengths to them, in neighbour order.
 #[derive(Clone, Debug)]
 pub(crate) struct EdgeGraph {
-    pub(crate) offsets: Vec<usize>,
-    pub(crate) nbrs: Vec<u32>,
-    pub(crate) lens: Vec<f64>,
+    adj: Buckets<(u32, f64)>,
 }
 
 impl EdgeGraph {
@@ -29,23 +29,20 @@ impl EdgeGraph {
         }
         e.sort_unstable();
         e.dedup();
-        let mut offsets = vec![0usize; n + 1];
-        for &(a, _) in &e {
-            offsets[a as usize + 1] += 1;
-        }
-        for i in 0..n {
-            offsets[i + 1] += offsets[i];
-        }
-        let nbrs: Vec<u32> = e.iter().map(|&(_, b)| b).collect();
-        let lens = e
-            .iter()
-            .map(|&(a, b)| norm(sub(mesh.vertices[a as usize], mesh.vertices[b as usize])))
-            .collect();
-        Self {
-            offsets,
-            nbrs,
-            lens,
-        }
+        let adj = Buckets::new(
+            n,
+            e.iter().map(|&(a, b)| {
+                let l = norm(sub(mesh.vertices[a as usize], mesh.vertices[b as usize]));
+                (a, (b, l))
+            }),
+        );
+        Self { adj }
+    }
+
+    /// The neighbours of vertex `v` and the edge lengths to them.
+    #[inline]
+    pub(crate) fn nbrs(&self, v: usize) -> &[(u32, f64)] {
+        self.adj.get(v)
     }
 
     /// Dijkstra from `src`, lowering `dist` only where the new distance is strictly smaller
@@ -69,9 +66,9 @@ impl EdgeGraph {
             if d > dist[v] {
                 continue;
             }
-            for e in self.offsets[v]..self.offsets[v + 1] {
-                let u = self.nbrs[e] as usize;
-                let nd = d + self.lens[e];
+            for &(u, l) in self.nbrs(v) {
+                let u = u as usize;
+                let nd = d + l;
                 if nd < dist[u] {
                     dist[u] = nd;
                     owner[u] = id;
@@ -291,8 +288,8 @@ impl<'a> NearField<'a> {
                 continue;
             }
             members[o as usize].push(v as u32);
-            for e in graph.offsets[v]..graph.offsets[v + 1] {
-                let p = owner[graph.nbrs[e] as usize];
+            for &(u, _) in graph.nbrs(v) {
+                let p = owner[u as usize];
                 if p > o && (p as usize) < m {
                     adj[o as usize].push(p);
                 }

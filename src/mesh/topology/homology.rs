@@ -11,7 +11,7 @@ pub(super) fn annotations(mesh: &Mesh, t: &Topo) -> Result<(Vec<u128>, usize), T
     let mut seen = vec![false; t.n];
     let mut queue = std::collections::VecDeque::new();
     for s in 0..t.n {
-        if seen[s] || t.adj_start[s] == t.adj_start[s + 1] {
+        if seen[s] || t.adj.count(s) == 0 {
             continue;
         }
         seen[s] = true;
@@ -242,7 +242,7 @@ pub(super) fn basis_of(
         return Ok(Vec::new());
     }
     // Farthest-point roots, starting from the lowest-index referenced vertex.
-    let Some(first) = (0..t.n).find(|&v| t.adj_start[v] < t.adj_start[v + 1]) else {
+    let Some(first) = (0..t.n).find(|&v| t.adj.count(v) > 0) else {
         return Ok(Vec::new());
     };
     let mut cands = Vec::new();
@@ -256,7 +256,7 @@ pub(super) fn basis_of(
             mind[v] = mind[v].min(d[v]);
         }
         let next = (0..t.n)
-            .filter(|&v| t.adj_start[v] < t.adj_start[v + 1])
+            .filter(|&v| t.adj.count(v) > 0)
             .max_by(|&a, &b| mind[a].total_cmp(&mind[b]).then(b.cmp(&a)));
         match next {
             Some(v) if mind[v] > 0.0 => r = v as u32,

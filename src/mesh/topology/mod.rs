@@ -71,6 +71,7 @@
 //! a boundary vertex, or one whose two sides cannot be told apart (a one-sided loop of a
 //! non-orientable surface), is never cut.
 
+use super::buckets::Buckets;
 use super::{cross, norm, sub, Mesh};
 use serde::{Deserialize, Serialize};
 use std::cmp::Ordering;
@@ -283,9 +284,8 @@ struct Topo {
     /// The three edges of each face (edge `k` is opposite vertex `k`... not assumed: just the
     /// three edges).
     face_edges: Vec<[u32; 3]>,
-    /// CSR vertex → (neighbour, edge).
-    adj_start: Vec<usize>,
-    adj: Vec<(u32, u32)>,
+    /// Vertex → (neighbour, edge).
+    adj: Buckets<(u32, u32)>,
     /// Edge lengths.
     len: Vec<f64>,
 }
@@ -331,23 +331,13 @@ impl Topo {
             }
             face_edges.push(fe);
         }
-        let mut deg = vec![0usize; n + 1];
-        for e in &edges {
-            deg[e[0] as usize] += 1;
-            deg[e[1] as usize] += 1;
-        }
-        let mut adj_start = vec![0usize; n + 1];
-        for i in 0..n {
-            adj_start[i + 1] = adj_start[i] + deg[i];
-        }
-        let mut fill = adj_start.clone();
-        let mut adj = vec![(0u32, 0u32); adj_start[n]];
-        for (id, e) in edges.iter().enumerate() {
-            adj[fill[e[0] as usize]] = (e[1], id as u32);
-            fill[e[0] as usize] += 1;
-            adj[fill[e[1] as usize]] = (e[0], id as u32);
-            fill[e[1] as usize] += 1;
-        }
+        let adj = Buckets::new(
+            n,
+            edges
+                .iter()
+                .enumerate()
+                .flat_map(|(id, e)| [(e[0], (e[1], id as u32)), (e[1], (e[0], id as u32))]),
+        );
         let len = edges
             .iter()
             .map(|e| {
@@ -362,14 +352,13 @@ impl Topo {
             edges,
             edge_faces,
             face_edges,
-            adj_start,
             adj,
             len,
         })
     }
 
     fn nbrs(&self, v: u32) -> &[(u32, u32)] {
-        &self.adj[self.adj_start[v as usize]..self.adj_start[v as usize + 1]]
+        self.adj.get(v as usize)
     }
 
     fn is_boundary_edge(&self, e: usize) -> bool {

@@ -1,6 +1,7 @@
 //! Connectivity and distances for [`weld`](super::weld): the edge graph with its half-edges and
 //! outward normals, Dijkstra scratch space, components and their geodesic diameters.
 
+use super::super::buckets::Buckets;
 use super::super::topology::HeapItem;
 use super::super::{cross, dot, norm, sub, Mesh};
 use std::collections::{BinaryHeap, HashMap};
@@ -8,13 +9,12 @@ use std::collections::{BinaryHeap, HashMap};
 /// Edge graph, directed half-edges and vertex normals of a manifold mesh.
 pub(super) struct Graph {
     pub(super) n: usize,
-    pub(super) start: Vec<usize>,
-    pub(super) adj: Vec<(u32, f64)>,
+    /// Vertex → (neighbour, edge length).
+    pub(super) adj: Buckets<(u32, f64)>,
     /// Directed half-edge `(a, b)` → the face traversing it.
     pub(super) half: HashMap<(u32, u32), u32>,
-    /// CSR vertex → incident faces.
-    pub(super) vf_start: Vec<usize>,
-    pub(super) vf: Vec<u32>,
+    /// Vertex → incident faces.
+    pub(super) vf: Buckets<u32>,
     /// On a boundary edge or an inconsistently oriented edge: never inside or on a disc.
     pub(super) avoid: Vec<bool>,
     /// Referenced by a face.
@@ -73,49 +73,27 @@ impl Graph {
         }
         edges.sort_unstable();
         edges.dedup();
-        let mut deg = vec![0usize; n + 1];
-        for &(a, b) in &edges {
-            deg[a as usize] += 1;
-            deg[b as usize] += 1;
-        }
-        let mut start = vec![0usize; n + 1];
-        for i in 0..n {
-            start[i + 1] = start[i] + deg[i];
-        }
-        let mut fill = start.clone();
-        let mut adj = vec![(0u32, 0.0f64); start[n]];
-        let mut total = 0.0;
-        for &(a, b) in &edges {
-            let l = norm(sub(mesh.vertices[a as usize], mesh.vertices[b as usize]));
-            total += l;
-            adj[fill[a as usize]] = (b, l);
-            fill[a as usize] += 1;
-            adj[fill[b as usize]] = (a, l);
-            fill[b as usize] += 1;
-        }
-        let mut vf_start = vec![0usize; n + 1];
-        for f in &mesh.faces {
-            for &v in f {
-                vf_start[v as usize + 1] += 1;
-            }
-        }
-        for i in 0..n {
-            vf_start[i + 1] += vf_start[i];
-        }
-        let mut fill = vf_start.clone();
-        let mut vf = vec![0u32; vf_start[n]];
-        for (fi, f) in mesh.faces.iter().enumerate() {
-            for &v in f {
-                vf[fill[v as usize]] = fi as u32;
-                fill[v as usize] += 1;
-            }
-        }
+        let length =
+            |a: u32, b: u32| norm(sub(mesh.vertices[a as usize], mesh.vertices[b as usize]));
+        let total: f64 = edges.iter().map(|&(a, b)| length(a, b)).sum();
+        let adj = Buckets::new(
+            n,
+            edges.iter().flat_map(|&(a, b)| {
+                let l = length(a, b);
+                [(a, (b, l)), (b, (a, l))]
+            }),
+        );
+        let vf = Buckets::new(
+            n,
+            mesh.faces
+                .iter()
+                .enumerate()
+                .flat_map(|(fi, f)| f.map(|v| (v, fi as u32))),
+        );
         Self {
             n,
-            start,
             adj,
             half,
-            vf_start,
             vf,
             avoid,
             used,
@@ -126,11 +104,11 @@ impl Graph {
     }
 
     pub(super) fn nbrs(&self, v: u32) -> &[(u32, f64)] {
-        &self.adj[self.start[v as usize]..self.start[v as usize + 1]]
+        self.adj.get(v as usize)
     }
 
     pub(super) fn faces_of(&self, v: u32) -> &[u32] {
-        &self.vf[self.vf_start[v as usize]..self.vf_start[v as usize + 1]]
+        self.vf.get(v as usize)
     }
 }
 

@@ -1,4 +1,6 @@
-//! Unit tests of `mesh::prepare` (kept apart to hold `prepare.rs` small).
+//! Unit tests of `mesh::prepare` (kept apart to hold `prepare/mod.rs` small).
+use super::edges::count_boundary_loops;
+use super::welding::lex_less;
 use super::*;
 use crate::mesh::generate;
 
