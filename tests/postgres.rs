@@ -291,6 +291,7 @@ fn prepare_report() -> PrepareReport {
         scale_factor: 0.894_427_190_999_915_9,
         handle_cut: None,
         capped: None,
+        smooth_steps: None,
     }
 }
 

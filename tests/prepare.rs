@@ -910,6 +910,9 @@ fn smoothing_in_preparation_keeps_the_map_and_removes_noise() {
     let clean = icosphere(4).area();
     assert!(r1.original_area < r0.original_area);
     assert!((r1.original_area / clean - 1.0).abs() < 0.5 * (r0.original_area / clean - 1.0));
+    // The report says how many pairs were taken, and nothing without smoothing.
+    assert_eq!((r0.smooth_steps, r1.smooth_steps), (None, Some(5)));
+    assert!(!serde_json::to_string(&r0).unwrap().contains("smooth"));
     let json = serde_json::to_string(&PrepareOptions::default()).unwrap();
     assert!(!json.contains("smooth"), "{json}");
     let bad = PrepareOptions {

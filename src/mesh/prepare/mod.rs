@@ -24,7 +24,7 @@
 //!    `mesh.too_few_faces`): one triangle, or 500 copies of it, has no spectrum worth storing.
 //!    5-. **Smoothing** (optional, [`PrepareOptions::smooth`]): Taubin's low-pass filter
 //!    ([`crate::mesh::smooth`]) removes noise at the scale of the edges before the steps that
-//!    read the geometry.
+//!    read the geometry; the report gives the step pairs taken (`smooth_steps`).
 //!    5a. **Boundary capping** (optional, [`PrepareOptions::cap_boundaries`]): boundary loops
 //!    up to a length bound closed by caps ([`crate::mesh::cap`]). 5b. **Handle cutting** (optional,
 //!    [`PrepareOptions::cut_handles`]).
@@ -39,7 +39,7 @@
 //! fall into neighbouring grid cells.
 
 use super::cap::{cap_boundaries, CapOptions, CapStats};
-use super::smooth::{taubin, SmoothOptions};
+use super::smooth::{taubin_counted, SmoothOptions};
 use super::topology::{cut_handles_with_map, HandleCutOptions};
 use super::{cross, norm, sub, Mesh};
 use crate::error::DegenerateKind;
@@ -211,6 +211,10 @@ pub struct PrepareReport {
     /// vertices and faces added; the topology and output counts describe the capped mesh).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub capped: Option<CapStats>,
+    /// Step pairs the smoothing took, when [`PrepareOptions::smooth`] asks for it (its `steps`,
+    /// or more with `until_settled`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub smooth_steps: Option<usize>,
 }
 
 /// Cleans `mesh` (see the [module documentation](crate::mesh::prepare)) and reports what was done.
@@ -442,9 +446,11 @@ pub fn prepare_with_map(
         });
     }
     // 5-. Smoothing (optional): vertices move, none is added or removed, so `map` holds.
+    let mut smooth_steps = None;
     if let Some(sm) = &opts.smooth {
-        let m = taubin(&Mesh::new(vertices, faces), sm);
+        let (m, done) = taubin_counted(&Mesh::new(vertices, faces), sm);
         (vertices, faces) = (m.vertices, m.faces);
+        smooth_steps = Some(done);
     }
     // 5a. Boundary capping (optional): cap vertices and faces are appended, so `map` holds.
     let mut capped = None;
@@ -492,6 +498,7 @@ pub fn prepare_with_map(
                 r.dropped_area_fraction = dropped_area_fraction;
                 r.read_repairs = mesh.repairs.clone();
                 r.capped = capped;
+                r.smooth_steps = smooth_steps;
                 let composed = map
                     .iter()
                     .map(|m| {
@@ -576,6 +583,7 @@ pub fn prepare_with_map(
         read_repairs: mesh.repairs.clone(),
         handle_cut,
         capped,
+        smooth_steps,
     };
     Ok((out, report, map))
 }
