@@ -199,3 +199,41 @@ pub fn alias_of(cfg: &Config) -> Option<String> {
         .find(|c| c.name != cfg.name && method(c) == me)
         .map(|c| c.name)
 }
+
+/// The run's configurations (`--config`, plus the `--loco-fixed` ones it lacks, the window of
+/// `--window-percentile` applied), validated against `--k`; and how many of them are
+/// candidates of the leave-one-class-out protocol (the first ones).
+pub(super) fn run_configs(args: &EvalOptions) -> Result<(Vec<Config>, usize)> {
+    let mut configs = load_configs(args.config.as_deref())?;
+    // LOCO: the configurations asked for are the candidates; fixed ones are added if missing.
+    let n_candidates = configs.len();
+    if let Some(lo) = &args.loco {
+        for name in &lo.fixed {
+            if !configs.iter().any(|c| &c.name == name) {
+                configs.extend(load_configs(Some(name))?);
+            }
+        }
+    }
+    if let Some(p) = args.window_percentile {
+        for c in &mut configs {
+            c.calibration.percentile = p;
+        }
+    }
+    for c in &configs {
+        c.calibration.validate().map_err(|e| {
+            Error::InvalidArgument(format!("configuration {}: calibration: {e}", c.name))
+        })?;
+        c.query
+            .validate()
+            .map_err(|e| Error::InvalidArgument(format!("configuration {}: query: {e}", c.name)))?;
+        let need = c.signature.min_eigenpairs();
+        if args.k < need {
+            return Err(Error::InvalidArgument(format!(
+                "configuration {} needs at least {need} eigenpairs (its ShapeDNA channel), \
+                 --k is {}",
+                c.name, args.k
+            )));
+        }
+    }
+    Ok((configs, n_candidates))
+}

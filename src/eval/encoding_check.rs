@@ -196,7 +196,7 @@ pub fn merge_rounding_ties(dist: &mut [f64], n: usize, tol: f64) {
 }
 
 /// Per-channel all-pairs matrices on the `f64` histograms (the reference side of
-/// `super::ChannelMatrices`).
+/// `super::matrices::ChannelMatrices`).
 #[derive(Default)]
 pub struct ReferenceMatrices {
     mats: HashMap<(usize, Dissimilarity), Vec<f64>>,

@@ -41,19 +41,24 @@ pub mod report;
 pub mod rerank;
 
 mod configs;
+mod matrices;
 mod output;
+mod rows;
 mod shapes;
 
+use configs::run_configs;
 pub use configs::{alias_of, covers, load_configs, union_specs};
+use matrices::ChannelMatrices;
 use output::{markdown_report, write_curves, write_matrices};
+use rerank::{apply_stage, stage_note};
+use rows::select_rows;
 pub(crate) use shapes::analysis_version;
 use shapes::{dur, process_shape, Progress, ShapeResult, StageClock};
 
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
 use crate::presets::{self, Config};
-use crate::ranking::{self, Dissimilarity, QuerySpec};
+use crate::ranking::{self, QuerySpec};
 use crate::search::corpus::{Corpus, Encoded, Layout};
-use crate::search::score::channel_dissimilarity;
 use crate::search::{Query, Stage};
 use crate::signature::{compute_signature, Signature, SignatureSpec};
 use crate::spectrum::{analyze, AnalyzeOptions};
@@ -64,7 +69,6 @@ use metrics::Evaluation;
 use rayon::prelude::*;
 use report::{ConfigResult, Failure, Reference};
 use serde_json::{json, Value};
-use std::collections::HashMap;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
@@ -251,57 +255,9 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
     if args.k < 2 {
         return Err(Error::InvalidArgument("--k must be at least 2".into()));
     }
-    let mut manifest = Manifest::read(&args.manifest)?;
-    if !args.classes.is_empty() {
-        manifest
-            .entries
-            .retain(|e| args.classes.iter().any(|c| c == &e.class));
-        if manifest.entries.is_empty() {
-            return Err(Error::InvalidArgument(format!(
-                "--classes {}: no manifest row",
-                args.classes.join(",")
-            )));
-        }
-    }
-    if let Some(m) = args.per_class {
-        manifest.entries =
-            per_class_subset(std::mem::take(&mut manifest.entries), m, args.sample_seed);
-        if manifest.entries.is_empty() {
-            return Err(Error::InvalidArgument("--per-class must be ≥ 1".into()));
-        }
-    }
+    let manifest = select_rows(args)?;
     let rerank_stages = &args.rerank;
-    let mut configs = load_configs(args.config.as_deref())?;
-    // LOCO: the configurations asked for are the candidates; fixed ones are added if missing.
-    let n_candidates = configs.len();
-    if let Some(lo) = &args.loco {
-        for name in &lo.fixed {
-            if !configs.iter().any(|c| &c.name == name) {
-                configs.extend(load_configs(Some(name))?);
-            }
-        }
-    }
-    if let Some(p) = args.window_percentile {
-        for c in &mut configs {
-            c.calibration.percentile = p;
-        }
-    }
-    for c in &configs {
-        c.calibration.validate().map_err(|e| {
-            Error::InvalidArgument(format!("configuration {}: calibration: {e}", c.name))
-        })?;
-        c.query
-            .validate()
-            .map_err(|e| Error::InvalidArgument(format!("configuration {}: query: {e}", c.name)))?;
-        let need = c.signature.min_eigenpairs();
-        if args.k < need {
-            return Err(Error::InvalidArgument(format!(
-                "configuration {} needs at least {need} eigenpairs (its ShapeDNA channel), \
-                 --k is {}",
-                c.name, args.k
-            )));
-        }
-    }
+    let (configs, n_candidates) = run_configs(args)?;
     let (specs, group_of) = union_specs(&configs);
     // One calibration (and corpus) per signature group and calibration options.
     let mut cal_groups: Vec<(usize, ranking::CalibrationOptions)> = Vec::new();
@@ -782,135 +738,4 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         loco: loco_report,
         encoding_check: check,
     })
-}
-
-/// One re-ranking stage over every query row ([`rerank::rerank_matrix`]), with the run's
-/// payloads for the stage's payload spec.
-#[allow(clippy::too_many_arguments)]
-fn apply_stage(
-    st: &Stage,
-    base: &[f64],
-    cur: &[f64],
-    n: usize,
-    included: &[bool],
-    payload_sets: &[(String, Vec<Option<crate::rerank::GwPayload>>)],
-    rescore: &(dyn Fn(usize, usize, &QuerySpec) -> f64 + Sync),
-    solved_pairs: &mut rerank::PairCache,
-) -> (Vec<f64>, rerank::RerankStats) {
-    let none = vec![None; n];
-    let payloads = st
-        .payload_spec()
-        .and_then(|ps| payload_sets.iter().find(|(k, _)| *k == ps.key()))
-        .map(|(_, p)| p)
-        .filter(|p| !p.is_empty())
-        .unwrap_or(&none);
-    rerank::rerank_matrix(base, cur, n, included, payloads, st, rescore, solved_pairs)
-}
-
-/// The report's line about one re-ranking stage (also printed unless `quiet`).
-fn stage_note(name: &str, st: &Stage, stats: &rerank::RerankStats, quiet: bool) -> String {
-    let line = match st {
-        Stage::SpectralGw(_) => format!(
-            "`{name}` ({}): {} newly solved pairs in {:.1} s wall; {:.2} ms CPU per GW solve; `rerank_gw` on one query's shortlist: {:.1} ms wall",
-            st.label(),
-            stats.pairs,
-            stats.wall_s,
-            stats.per_candidate_ms,
-            stats.per_query_ms
-        ),
-        _ => format!(
-            "`{name}` ({}): {:.1} s wall for every query; {:.2} ms per query's shortlist (one thread)",
-            st.label(),
-            stats.wall_s,
-            stats.per_query_ms
-        ),
-    };
-    if !quiet {
-        eprintln!("eval: {line}");
-    }
-    format!("- {line}\n")
-}
-
-/// `--per-class`: per class, the `m` rows with the smallest `hash(seed, id)`, in manifest order.
-fn per_class_subset(entries: Vec<manifest::Entry>, m: usize, seed: u64) -> Vec<manifest::Entry> {
-    let key = |e: &manifest::Entry| hash_parts(&[seed.to_string().as_bytes(), e.id.as_bytes()]);
-    let mut keep = vec![false; entries.len()];
-    let mut classes: Vec<&str> = entries.iter().map(|e| e.class.as_str()).collect();
-    classes.sort_unstable();
-    classes.dedup();
-    for c in classes {
-        let mut rows: Vec<(String, usize)> = entries
-            .iter()
-            .enumerate()
-            .filter(|(_, e)| e.class == c)
-            .map(|(i, e)| (key(e), i))
-            .collect();
-        rows.sort();
-        for (_, i) in rows.into_iter().take(m) {
-            keep[i] = true;
-        }
-    }
-    entries
-        .into_iter()
-        .zip(keep)
-        .filter_map(|(e, k)| k.then_some(e))
-        .collect()
-}
-
-/// All-pairs per-channel dissimilarity matrices, computed once per (channel, dissimilarity)
-/// and shared by every configuration of a signature family: `Heat-L2-nL1-Single[t]`, `…-Sum`,
-/// `…-Sum2` and `…-Max` all reuse the same six matrices. A configuration's matrix is then
-/// [`Query::aggregate`] of the channels' values and [`Query::with_second`] for pairs with a
-/// second cut version, which is how [`Query::score`] is computed: the same numbers as the
-/// server's scan, by construction.
-#[derive(Default)]
-struct ChannelMatrices {
-    mats: HashMap<(usize, Dissimilarity), Vec<f64>>,
-}
-
-impl ChannelMatrices {
-    fn matrix(&mut self, corpus: &Corpus, included: &[bool], c: usize, d: Dissimilarity) {
-        self.mats.entry((c, d)).or_insert_with(|| {
-            let n = corpus.len();
-            let l = corpus.layout();
-            let mut m = vec![f64::NAN; n * n];
-            m.par_chunks_mut(n.max(1)).enumerate().for_each(|(i, row)| {
-                if included[i] {
-                    for (j, x) in row.iter_mut().enumerate() {
-                        if i != j && included[j] {
-                            *x = channel_dissimilarity(l, d, c, corpus.shape(i), corpus.shape(j));
-                        }
-                    }
-                }
-            });
-            m
-        });
-    }
-
-    /// The configuration's all-pairs matrix (row = query; NaN on the diagonal and for shapes
-    /// left out).
-    fn aggregate(&mut self, corpus: &Corpus, included: &[bool], spec: &QuerySpec) -> Vec<f64> {
-        let l = corpus.layout();
-        let q = Query::new(spec, l);
-        for &c in q.channels.iter().flatten() {
-            self.matrix(corpus, included, c, q.dissimilarity);
-        }
-        let mats = &self.mats;
-        let n = corpus.len();
-        let mut out = vec![f64::NAN; n * n];
-        out.par_chunks_mut(n.max(1))
-            .enumerate()
-            .for_each(|(i, row)| {
-                if !included[i] {
-                    return;
-                }
-                for (j, x) in row.iter_mut().enumerate() {
-                    if i != j && included[j] {
-                        let first = q.aggregate(|c| mats[&(c, q.dissimilarity)][i * n + j]);
-                        *x = q.with_second(l, corpus.shape(i), corpus.shape(j), first);
-                    }
-                }
-            });
-        out
-    }
 }

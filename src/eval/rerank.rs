@@ -334,3 +334,50 @@ fn gw_latency(
         1e3 * lat.iter().sum::<f64>() / lat.len() as f64
     }
 }
+
+/// One re-ranking stage over every query row ([`rerank_matrix`]), with the run's
+/// payloads for the stage's payload spec.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn apply_stage(
+    st: &Stage,
+    base: &[f64],
+    cur: &[f64],
+    n: usize,
+    included: &[bool],
+    payload_sets: &[(String, Vec<Option<crate::rerank::GwPayload>>)],
+    rescore: &(dyn Fn(usize, usize, &QuerySpec) -> f64 + Sync),
+    solved_pairs: &mut PairCache,
+) -> (Vec<f64>, RerankStats) {
+    let none = vec![None; n];
+    let payloads = st
+        .payload_spec()
+        .and_then(|ps| payload_sets.iter().find(|(k, _)| *k == ps.key()))
+        .map(|(_, p)| p)
+        .filter(|p| !p.is_empty())
+        .unwrap_or(&none);
+    rerank_matrix(base, cur, n, included, payloads, st, rescore, solved_pairs)
+}
+
+/// The report's line about one re-ranking stage (also printed unless `quiet`).
+pub(super) fn stage_note(name: &str, st: &Stage, stats: &RerankStats, quiet: bool) -> String {
+    let line = match st {
+        Stage::SpectralGw(_) => format!(
+            "`{name}` ({}): {} newly solved pairs in {:.1} s wall; {:.2} ms CPU per GW solve; `rerank_gw` on one query's shortlist: {:.1} ms wall",
+            st.label(),
+            stats.pairs,
+            stats.wall_s,
+            stats.per_candidate_ms,
+            stats.per_query_ms
+        ),
+        _ => format!(
+            "`{name}` ({}): {:.1} s wall for every query; {:.2} ms per query's shortlist (one thread)",
+            st.label(),
+            stats.wall_s,
+            stats.per_query_ms
+        ),
+    };
+    if !quiet {
+        eprintln!("eval: {line}");
+    }
+    format!("- {line}\n")
+}
