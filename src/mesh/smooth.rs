@@ -205,8 +205,8 @@ pub fn mesh_roughness(mesh: &Mesh) -> f64 {
 /// How rough the surface `x` is at the scale of its edges: the median, over the vertices with
 /// at least three umbrella neighbours (interior vertices), of the distance from the vertex to the
 /// mean of its neighbours *along the vertex normal* (area-weighted), over the mean edge length.
-/// The tangential part is left out: it measures how uneven the vertex spacing is, which the
-/// filter changes little. About 0.03–0.16 on the clean shapes of the benchmarks and 0.23–0.33
+/// The tangential part is left out: it measures how unevenly the vertices are spaced along the
+/// surface, not how far the surface strays across itself. About 0.03–0.16 on the clean shapes of the benchmarks and 0.23–0.33
 /// under normal noise of σ = 0.35–0.5 mean edge lengths (`docs/quality.md` §27); 0 when no
 /// vertex qualifies.
 fn roughness(faces: &[[u32; 3]], nbr: &Buckets<u32>, x: &[[f64; 3]]) -> f64 {
