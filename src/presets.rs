@@ -538,10 +538,10 @@ pub const DEFAULT_SMOOTH: SmoothOptions = SmoothOptions {
 /// surface's roughness ([`crate::mesh::smooth::mesh_roughness`]) by more than a fifth, up to 10
 /// pairs in all.
 ///
-/// Why: after two pairs a shape with strong normal noise (σ = 0.5 ē) is still 1.2 to 3 times
+/// Why: after two pairs a shape with strong normal noise (σ = 0.5 ē) is still 1.2 to 3.3 times
 /// as rough as its clean sibling after two pairs (david 0.097 against 0.083, the face 0.078
-/// against 0.024); a pair more or two bring it down to that level, while on
-/// a clean surface a pair lowers it by a tenth or less. On the 606 shapes of the protocol only
+/// against 0.024); a pair more or two bring it down to that level, while on a clean surface a
+/// pair after the first lowers it by a tenth or less. On the 606 shapes of the protocol only
 /// noise shapes took more (noise2 5 of 14, noise3 13 of 14, noise4 all 14: 3 or 4 pairs); every
 /// other shape's analysis is the same as with 2 pairs. Chosen by the leave-one-class-out protocol
 /// over the 14 characters among a reduction of 0.12, 0.2, 0.3 and none: 0.2 in 12 of 14 folds;

@@ -15,16 +15,13 @@ pub(crate) struct Buckets<T> {
 }
 
 impl<T: Copy + Default> Buckets<T> {
-    /// Groups the `(key, item)` pairs by key (`key < n`; a larger key panics). `pairs` is walked
-    /// twice: once to count, once to place.
-    pub(crate) fn new<I>(n: usize, pairs: I) -> Self
-    where
-        I: IntoIterator<Item = (u32, T)>,
-        I::IntoIter: Clone,
-    {
-        let pairs = pairs.into_iter();
+    /// Groups the `(key, item)` pairs by key (`key < n`; a larger key panics). Each pair is
+    /// produced once (collected, then counted and placed), so an item computed on the way (an
+    /// edge length) is computed once.
+    pub(crate) fn new(n: usize, pairs: impl IntoIterator<Item = (u32, T)>) -> Self {
+        let pairs: Vec<(u32, T)> = pairs.into_iter().collect();
         let mut start = vec![0usize; n + 1];
-        for (k, _) in pairs.clone() {
+        for &(k, _) in &pairs {
             start[k as usize + 1] += 1;
         }
         for k in 0..n {

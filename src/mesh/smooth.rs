@@ -35,7 +35,7 @@
 //! the eigensolver then does not converge). A move that would shrink a face below
 //! [`MIN_AREA_KEPT`] of its input area is taken back for that face's vertices.
 //!
-//! Deterministic; `O(steps · F)`, plus an `O(V)` roughness per pair with `until_settled`.
+//! Deterministic; `O(steps · F)`, plus an `O(V + F)` roughness per pair with `until_settled`.
 
 use super::buckets::Buckets;
 use super::Mesh;
@@ -64,8 +64,8 @@ pub struct SmoothOptions {
 /// `min_reduction` of its value, up to `max_steps` pairs in all.
 ///
 /// Why: normal noise is what the first pairs remove fast (a strongly noisy shape's roughness
-/// halves per pair), while on a clean surface a pair lowers it by a few percent only — the
-/// filter then works on the shape's own detail. So the clean shapes of a collection get exactly
+/// halves in the first pair), while on a clean surface, once the first pair has passed, a pair
+/// lowers it by a tenth or less — the filter then works on the shape's own detail. So the clean shapes of a collection get exactly
 /// `steps` pairs, and a noisy one gets as many more as its noise needs to come down to the level
 /// of its clean siblings (`docs/quality.md` §27).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -155,11 +155,10 @@ pub fn taubin_counted(mesh: &Mesh, opts: &SmoothOptions) -> (Mesh, usize) {
         if let Some(u) = &opts.until_settled {
             if done + 1 >= opts.steps {
                 let now = roughness(&mesh.faces, &nbr, &x);
-                if let (true, Some(b)) = (done >= opts.steps, before) {
-                    // Settled: the last pair removed little (or the surface is already flat).
-                    if !(b > 0.0 && (b - now) > u.min_reduction * b) {
-                        break;
-                    }
+                // Settled: the last pair removed little (or the surface is already flat).
+                let settled = |b: f64| !(b > 0.0 && (b - now) > u.min_reduction * b);
+                if done >= opts.steps && before.is_some_and(settled) {
+                    break;
                 }
                 before = Some(now);
             }

@@ -73,15 +73,17 @@ impl Graph {
         }
         edges.sort_unstable();
         edges.dedup();
-        let length =
-            |a: u32, b: u32| norm(sub(mesh.vertices[a as usize], mesh.vertices[b as usize]));
-        let total: f64 = edges.iter().map(|&(a, b)| length(a, b)).sum();
+        let lengths: Vec<f64> = edges
+            .iter()
+            .map(|&(a, b)| norm(sub(mesh.vertices[a as usize], mesh.vertices[b as usize])))
+            .collect();
+        let total: f64 = lengths.iter().sum();
         let adj = Buckets::new(
             n,
-            edges.iter().flat_map(|&(a, b)| {
-                let l = length(a, b);
-                [(a, (b, l)), (b, (a, l))]
-            }),
+            edges
+                .iter()
+                .zip(&lengths)
+                .flat_map(|(&(a, b), &l)| [(a, (b, l)), (b, (a, l))]),
         );
         let vf = Buckets::new(
             n,
