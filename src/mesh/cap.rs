@@ -42,8 +42,8 @@
 //! stood as a balloon over a slit. Until §28 the rings were at equal steps of `s` with a
 //! dome of height `dome_height · ρ_L`, and the sliver guard below left 90 loops of 772
 //! open over 606 benchmark shapes — whole rims of cut-away parts among them, and the same
-//! loop capped on one shape of a character and open on the next; it leaves 53 now
-//! (horse's 3-vertex crack on every horse shape, the face's mouth on 3 of its 36 shapes, two more).
+//! loop capped on one shape of a character and open on the next; it leaves 53 now (mostly a
+//! 3-vertex crack of the horse, and the face's mouth on 3 of its 36 shapes).
 //!
 //! Two loops are left open: one longer than [`CapOptions::max_length`] `· sqrt(area)` (the
 //! own border of an open surface), and one whose cap would still hold a triangle with an
