@@ -333,8 +333,7 @@ fn cap_loop(
     let shrink = meridian_shrinks(rings, dome_height * rho / rho_len);
     let mut outer: Vec<u32> = lp.to_vec();
     let mut outer_u: Vec<f64> = u.clone();
-    for (r, &s) in shrink.iter().enumerate().skip(1) {
-        debug_assert!(r < rings);
+    for &s in &shrink[1..] {
         let k = ((m as f64 * s).round() as usize).max(3);
         let first = vertices.len() as u32;
         let inner_u: Vec<f64> = (0..k).map(|j| j as f64 / k as f64).collect();
@@ -375,23 +374,18 @@ fn meridian_shrinks(rings: usize, aspect: f64) -> Vec<f64> {
         arc.push(arc[i - 1] + step);
     }
     let total = arc[STEPS];
-    (0..rings)
-        .map(|r| {
-            let target = r as f64 / rings as f64 * total;
-            let i = arc.partition_point(|&x| x < target).clamp(1, STEPS);
-            let w = if arc[i] > arc[i - 1] {
-                (target - arc[i - 1]) / (arc[i] - arc[i - 1])
-            } else {
-                0.0
-            };
-            let th = theta(i - 1) + w * (theta(i) - theta(i - 1));
-            if r == 0 {
-                1.0
-            } else {
-                th.cos()
-            }
-        })
-        .collect()
+    let mut shrink = vec![1.0];
+    shrink.extend((1..rings).map(|r| {
+        let target = r as f64 / rings as f64 * total;
+        let i = arc.partition_point(|&x| x < target).clamp(1, STEPS);
+        let w = if arc[i] > arc[i - 1] {
+            (target - arc[i - 1]) / (arc[i] - arc[i - 1])
+        } else {
+            0.0
+        };
+        (theta(i - 1) + w * (theta(i) - theta(i - 1))).cos()
+    }));
+    shrink
 }
 
 /// Lawson's edge flips on the faces `faces[first..]` (one cap): an edge shared by two of them
@@ -436,15 +430,9 @@ fn delaunay_flips(vertices: &[[f64; 3]], faces: &mut [[u32; 3]], first_vertex: u
                 continue;
             }
             let at = |v: u32| vertices[v as usize];
-            let angle = |apex: u32| {
-                let (x, y) = (sub(at(a), at(apex)), sub(at(b), at(apex)));
-                let d = norm(x) * norm(y);
-                if d == 0.0 {
-                    std::f64::consts::PI
-                } else {
-                    (dot(x, y) / d).clamp(-1.0, 1.0).acos()
-                }
-            };
+            // A degenerate corner counts as flat (π): such a pair is always flipped.
+            let angle =
+                |apex: u32| angle_at(at(apex), at(a), at(b)).unwrap_or(std::f64::consts::PI);
             if angle(c1) + angle(c2) <= std::f64::consts::PI + 1e-12 {
                 continue;
             }
@@ -504,17 +492,22 @@ fn stitch(
 fn smallest_angle(vertices: &[[f64; 3]], f: &[u32; 3]) -> f64 {
     let p = f.map(|i| vertices[i as usize]);
     (0..3)
-        .map(|k| {
-            let (a, b, c) = (p[k], p[(k + 1) % 3], p[(k + 2) % 3]);
-            let (lb, lc) = (dist(a, b), dist(a, c));
-            if lb == 0.0 || lc == 0.0 {
-                return 0.0;
-            }
-            (dot(sub(b, a), sub(c, a)) / (lb * lc))
-                .clamp(-1.0, 1.0)
-                .acos()
-        })
+        .map(|k| angle_at(p[k], p[(k + 1) % 3], p[(k + 2) % 3]).unwrap_or(0.0))
         .fold(f64::INFINITY, f64::min)
+}
+
+/// The angle at `apex` between the directions to `b` and `c` (radians); `None` when either
+/// is at the apex.
+fn angle_at(apex: [f64; 3], b: [f64; 3], c: [f64; 3]) -> Option<f64> {
+    let (lb, lc) = (dist(apex, b), dist(apex, c));
+    if lb == 0.0 || lc == 0.0 {
+        return None;
+    }
+    Some(
+        (dot(sub(b, apex), sub(c, apex)) / (lb * lc))
+            .clamp(-1.0, 1.0)
+            .acos(),
+    )
 }
 
 fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {

@@ -65,9 +65,9 @@ pub struct SmoothOptions {
 ///
 /// Why: normal noise is what the first pairs remove fast (a strongly noisy shape's roughness
 /// halves in the first pair), while on a clean surface, once the first pair has passed, a pair
-/// lowers it by a tenth or less — the filter then works on the shape's own detail. So the clean shapes of a collection get exactly
-/// `steps` pairs, and a noisy one gets as many more as its noise needs to come down to the level
-/// of its clean siblings (`docs/quality.md` §27).
+/// lowers it by a tenth or less — the filter then works on the shape's own detail. So the clean
+/// shapes of a collection get exactly `steps` pairs, and a noisy one gets as many more as its
+/// noise needs to come down to the level of its clean siblings (`docs/quality.md` §27).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct UntilSettled {
     /// At most this many step pairs in all (`steps..=100`).
@@ -205,9 +205,9 @@ pub fn mesh_roughness(mesh: &Mesh) -> f64 {
 /// at least three umbrella neighbours (interior vertices), of the distance from the vertex to the
 /// mean of its neighbours *along the vertex normal* (area-weighted), over the mean edge length.
 /// The tangential part is left out: it measures how unevenly the vertices are spaced along the
-/// surface, not how far the surface strays across itself. About 0.03–0.16 on the clean shapes of the benchmarks and 0.23–0.33
-/// under normal noise of σ = 0.35–0.5 mean edge lengths (`docs/quality.md` §27); 0 when no
-/// vertex qualifies.
+/// surface, not how far the surface strays across itself. About 0.03–0.16 on the clean shapes
+/// of the benchmarks and 0.23–0.33 under normal noise of σ = 0.35–0.5 mean edge lengths
+/// (`docs/quality.md` §27); 0 when no vertex qualifies.
 fn roughness(faces: &[[u32; 3]], nbr: &Buckets<u32>, x: &[[f64; 3]]) -> f64 {
     let mut normal = vec![[0.0f64; 3]; x.len()];
     for f in faces {
