@@ -36,7 +36,7 @@ pub use error::{Error, Result};
 /// [`signature::SignatureSpec::key`]), and eval's cache no longer serves analyses or signatures
 /// of the older code (its analysis key carries the tag too). Specifications, options and the
 /// package version are keyed on their own; this covers the code behind them.
-pub const ALGORITHM_REVISION: u32 = 1;
+pub const ALGORITHM_REVISION: u32 = 2;
 
 /// The part of spec and cache keys that names [`ALGORITHM_REVISION`]: empty for revision 0 (the
 /// keys of indexes and caches made before the revision existed are unchanged), else `+r<N>`.

@@ -236,8 +236,8 @@ fn run_spectrum(args: &SpectrumArgs) -> Result<(), CliError> {
             r.welded_vertices, r.degenerate_faces, r.duplicate_faces, r.components, r.components_kept, 100.0 * r.dropped_area_fraction
         );
         println!(
-            "  topology: {} boundary loop(s), {} non-manifold edge(s), {} inconsistently oriented edge(s), Euler characteristic {}",
-            r.boundary_loops, r.nonmanifold_edges, r.inconsistent_orientation_edges, r.euler_characteristic
+            "  topology: {} boundary loop(s), {} non-manifold edge(s), {} face(s) reoriented, {} inconsistently oriented edge(s) left, Euler characteristic {}",
+            r.boundary_loops, r.nonmanifold_edges, r.reoriented_faces, r.inconsistent_orientation_edges, r.euler_characteristic
         );
         println!(
             "  area: {:.6} (coordinates scaled by {:.6})",

@@ -285,6 +285,7 @@ fn prepare_report() -> PrepareReport {
         boundary_loops: 0,
         nonmanifold_edges: 0,
         inconsistent_orientation_edges: 0,
+        reoriented_faces: 0,
         euler_characteristic: 2,
         read_repairs: Vec::new(),
         original_area: 1.25,

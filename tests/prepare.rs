@@ -385,12 +385,22 @@ fn nonmanifold_book_is_tolerated() {
     assert!((out.area() - 1.0).abs() < 1e-12);
 }
 
+/// `f` rotated so that its smallest index comes first (same orientation, same face).
+fn canonical(f: [u32; 3]) -> [u32; 3] {
+    let k = (0..3).min_by_key(|&k| f[k]).unwrap();
+    [f[k], f[(k + 1) % 3], f[(k + 2) % 3]]
+}
+
 #[test]
-fn flipped_face_is_counted_as_inconsistent() {
-    let mut m = icosphere(1);
-    m.faces[7].swap(0, 1);
-    let (_, r) = prepare(&m, &lax()).unwrap();
-    assert_eq!(r.inconsistent_orientation_edges, 3);
+fn a_flipped_face_is_reoriented() {
+    let m = icosphere(1);
+    let mut flipped = m.clone();
+    flipped.faces[7].swap(0, 1);
+    let (out, r) = prepare(&flipped, &raw()).unwrap();
+    assert_eq!(
+        (r.reoriented_faces, r.inconsistent_orientation_edges),
+        (1, 0)
+    );
     assert_eq!(
         (
             r.boundary_edges,
@@ -399,6 +409,138 @@ fn flipped_face_is_counted_as_inconsistent() {
         ),
         (0, 0, 2)
     );
+    assert_eq!(out.vertices, m.vertices);
+    let faces: Vec<[u32; 3]> = out.faces.iter().map(|&f| canonical(f)).collect();
+    let want: Vec<[u32; 3]> = m.faces.iter().map(|&f| canonical(f)).collect();
+    assert_eq!(faces, want);
+    // A coherent mesh is left as it is.
+    let (same, r) = prepare(&m, &raw()).unwrap();
+    assert_eq!((same, r.reoriented_faces), (m, 0));
+}
+
+#[test]
+fn each_patch_keeps_the_orientation_of_its_larger_area() {
+    let m = icosphere(3);
+    let up = |f: &[u32; 3]| f.iter().map(|&i| m.vertices[i as usize][2]).sum::<f64>() > 2.1;
+    let cap = m.faces.iter().filter(|f| up(f)).count();
+    assert!(cap > 20 && 4 * cap < m.faces.len(), "{cap}");
+    // The cap flipped: it turns back, the rest keeps its outward normals.
+    let mut a = m.clone();
+    for f in a.faces.iter_mut().filter(|f| up(f)) {
+        f.swap(0, 1);
+    }
+    let (out, r) = prepare(&a, &raw()).unwrap();
+    assert_eq!(
+        (r.reoriented_faces, r.inconsistent_orientation_edges),
+        (cap, 0)
+    );
+    for (o, f) in out.faces.iter().zip(&m.faces) {
+        assert_eq!(canonical(*o), canonical(*f));
+    }
+    // Everything but the cap flipped: the cap is the smaller area, so it is the one that turns.
+    let mut b = m.clone();
+    for f in b.faces.iter_mut().filter(|f| !up(f)) {
+        f.swap(0, 1);
+    }
+    let (out, r) = prepare(&b, &raw()).unwrap();
+    assert_eq!(
+        (r.reoriented_faces, r.inconsistent_orientation_edges),
+        (cap, 0)
+    );
+    for (o, f) in out.faces.iter().zip(&m.faces) {
+        assert_eq!(canonical(*o), canonical([f[1], f[0], f[2]]));
+    }
+    // Two components (apart, so that welding keeps them apart) are oriented each on its own.
+    for v in &mut b.vertices {
+        v[0] += 3.0;
+    }
+    let two = union(&a, &b);
+    let (_, r) = prepare(&two, &all_raw()).unwrap();
+    assert_eq!(
+        (r.reoriented_faces, r.inconsistent_orientation_edges),
+        (2 * cap, 0)
+    );
+}
+
+/// A Möbius strip of `n` quads (each split in two triangles), every triangle wound the same way
+/// locally. It cannot be oriented: one edge is left inconsistent wherever the traversal closes.
+fn moebius(n: usize) -> Mesh {
+    let mut vertices = Vec::new();
+    for i in 0..n {
+        let u = std::f64::consts::TAU * i as f64 / n as f64;
+        for s in [-0.3, 0.3] {
+            let r = 1.0 + s * (u / 2.0).cos();
+            vertices.push([r * u.cos(), r * u.sin(), s * (u / 2.0).sin()]);
+        }
+    }
+    let mut faces = Vec::new();
+    for i in 0..n {
+        let (a, b) = (2 * i as u32, 2 * i as u32 + 1);
+        // The last quad joins the first with its sides swapped.
+        let (c, d) = if i + 1 < n {
+            (2 * (i as u32 + 1), 2 * (i as u32 + 1) + 1)
+        } else {
+            (1, 0)
+        };
+        faces.push([a, c, b]);
+        faces.push([b, c, d]);
+    }
+    Mesh::new(vertices, faces)
+}
+
+#[test]
+fn a_moebius_strip_keeps_one_inconsistent_edge() {
+    let m = moebius(40);
+    let (out, r) = prepare(&m, &raw()).unwrap();
+    assert_eq!(r.inconsistent_orientation_edges, 1, "{r:?}");
+    assert_eq!((r.boundary_loops, r.euler_characteristic), (1, 0));
+    assert_eq!(out.faces.len(), 80);
+    // Deterministic.
+    let (again, r2) = prepare(&m, &raw()).unwrap();
+    assert_eq!((again, r2), (out, r));
+}
+
+#[test]
+fn a_hole_next_to_a_flipped_face_is_capped() {
+    let sphere = icosphere(3);
+    // A hole: the faces around vertex 0.
+    let mut m = sphere.clone();
+    m.faces.retain(|f| !f.contains(&0));
+    let opts = PrepareOptions {
+        cap_boundaries: Some(shapeseek::presets::DEFAULT_CAP),
+        ..raw()
+    };
+    let (_, r) = prepare(&m, &opts).unwrap();
+    let capped = r.capped.unwrap();
+    assert_eq!(
+        (capped.loops, r.boundary_edges, r.reoriented_faces),
+        (1, 0, 0)
+    );
+    // One face on the rim flipped: before orientation was made coherent the rim had no directed
+    // cycle and the hole was left open without being counted.
+    let rim = m.faces.iter().position(|f| {
+        let n = |v: u32| {
+            sphere
+                .faces
+                .iter()
+                .any(|g| g.contains(&0) && g.contains(&v))
+        };
+        f.iter().filter(|&&v| n(v)).count() == 2
+    });
+    m.faces[rim.unwrap()].swap(0, 1);
+    let (out, r) = prepare(&m, &opts).unwrap();
+    let capped = r.capped.unwrap();
+    assert_eq!(
+        (capped.loops, capped.loops_left_open, r.boundary_edges),
+        (1, 0, 0),
+        "{r:?}"
+    );
+    assert_eq!(
+        (r.reoriented_faces, r.inconsistent_orientation_edges),
+        (1, 0)
+    );
+    assert_eq!(r.euler_characteristic, 2);
+    assert!(out.faces.len() > m.faces.len());
 }
 
 #[test]

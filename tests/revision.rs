@@ -23,7 +23,7 @@ use shapeseek::signature::ChannelValues;
 use shapeseek::ALGORITHM_REVISION;
 
 /// Revision the figures below were recorded at.
-const RECORDED_AT: u32 = 1;
+const RECORDED_AT: u32 = 2;
 
 /// Vertices and faces of the prepared (cut) mesh, vertices of the signature's mesh, samples of
 /// the payload.

@@ -398,6 +398,38 @@ fn welded_neck_is_cut_and_deterministic() {
 }
 
 #[test]
+fn capping_and_cutting_together_count_the_dropped_vertices_once() {
+    use shapeseek::mesh::prepare::{prepare, PrepareOptions};
+    let (nu, nv) = (360, 24);
+    let mut m = welded_c(0.25, 0.06, 0.12, nu, nv);
+    // A hole opposite the weld: the faces around one vertex of the body's outer equator.
+    let centre = ((nu / 2) * nv) as u32;
+    m.faces.retain(|f| !f.contains(&centre));
+    let cut_only = PrepareOptions {
+        cut_handles: Some(shapeseek::presets::DEFAULT_HANDLE_CUT),
+        normalize_area: false,
+        ..PrepareOptions::default()
+    };
+    let both = PrepareOptions {
+        cap_boundaries: Some(shapeseek::presets::DEFAULT_CAP),
+        ..cut_only.clone()
+    };
+    let (_, open) = prepare(&m, &cut_only).unwrap();
+    let (p, capped) = prepare(&m, &both).unwrap();
+    assert_eq!(capped.capped.map(|c| c.loops), Some(1), "{capped:?}");
+    assert_eq!(open.handle_cut.as_ref().map(|h| h.cuts), Some(1));
+    assert_eq!(capped.handle_cut.as_ref().map(|h| h.cuts), Some(1));
+    // The vertices dropped are the hole's centre and the cut's band, with or without the cap
+    // (the caps' vertices were once subtracted from the count, which wrapped around).
+    assert_eq!(capped.unreferenced_vertices, open.unreferenced_vertices);
+    assert!(
+        (1..3 * nv).contains(&capped.unreferenced_vertices),
+        "{capped:?}"
+    );
+    assert_eq!(capped.vertices_out, p.vertices.len());
+}
+
+#[test]
 fn genuine_handles_survive_preparation_with_cutting() {
     use shapeseek::mesh::prepare::{prepare, PrepareOptions};
     for opts in [

@@ -22,6 +22,10 @@
 //!    relative order of their first input index. Fewer than [`PrepareOptions::min_vertices`]
 //!    vertices or [`PrepareOptions::min_faces`] triangles left is refused (`mesh.too_few_vertices`,
 //!    `mesh.too_few_faces`): one triangle, or 500 copies of it, has no spectrum worth storing.
+//!    5′. **Orientation.** Faces are flipped so that two faces sharing an edge traverse it in
+//!    opposite directions; per patch the orientation of the larger area is kept
+//!    (`reoriented_faces` counts the flips). Capping reads the boundary's direction: a hole next
+//!    to a flipped face was otherwise skipped.
 //!    5-. **Smoothing** (optional, [`PrepareOptions::smooth`]): Taubin's low-pass filter
 //!    ([`crate::mesh::smooth`]) removes noise at the scale of the edges before the steps that
 //!    read the geometry; the report gives the step pairs taken (`smooth_steps`).
@@ -47,6 +51,7 @@ use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
 mod edges;
+mod orient;
 mod welding;
 
 use edges::{analyse_edges, duplicate_faces};
@@ -189,8 +194,14 @@ pub struct PrepareReport {
     pub boundary_loops: usize,
     /// Edges with more than two incident faces.
     pub nonmanifold_edges: usize,
-    /// Edges with exactly two incident faces that traverse it in the same direction.
+    /// Edges with exactly two incident faces that traverse it in the same direction, in the
+    /// output: after step 5′ only those of a non-orientable surface (a Möbius strip).
     pub inconsistent_orientation_edges: usize,
+    /// Faces flipped by step 5′ so that faces sharing an edge traverse it in opposite
+    /// directions (per patch, the orientation of the larger area is kept). Absent from reports
+    /// stored before the step existed (read as 0).
+    #[serde(default)]
+    pub reoriented_faces: usize,
     /// `V − E + F` of the output.
     pub euler_characteristic: i64,
     /// Total area of the output before normalisation.
@@ -445,6 +456,8 @@ pub fn prepare_with_map(
             ),
         });
     }
+    // 5′. Coherent orientation: faces flip in place, so `map` holds.
+    let reoriented_faces = orient::orient_coherently(&vertices, &mut faces);
     // 5-. Smoothing (optional): vertices move, none is added or removed, so `map` holds.
     let mut smooth_steps = None;
     if let Some(sm) = &opts.smooth {
@@ -492,7 +505,9 @@ pub fn prepare_with_map(
                 r.degenerate_faces += degenerate_faces;
                 r.duplicate_faces += duplicate_faces;
                 r.component_faces_dropped += component_faces_dropped;
-                r.unreferenced_vertices += clusters - compacted.vertices.len();
+                // The vertices compaction dropped (`compacted` also holds the caps' vertices).
+                r.unreferenced_vertices += unreferenced_vertices;
+                r.reoriented_faces = reoriented_faces;
                 r.components = components;
                 r.components_kept = components_kept;
                 r.dropped_area_fraction = dropped_area_fraction;
@@ -576,6 +591,7 @@ pub fn prepare_with_map(
         boundary_loops: topo.boundary_loops,
         nonmanifold_edges: topo.nonmanifold_edges,
         inconsistent_orientation_edges: topo.inconsistent,
+        reoriented_faces,
         euler_characteristic: out.vertices.len() as i64 - topo.edges as i64
             + out.faces.len() as i64,
         original_area,
