@@ -51,9 +51,12 @@
 //! ill-conditioned). Both are counted in [`CapStats`].
 //!
 //! Loops are read off the directed boundary half-edges (edges with one incident face). A
-//! vertex where two loops touch (a "bow tie") is visited once per loop. Edges with more than
-//! two faces are not boundary edges and are never capped; a walk that cannot close (a
-//! non-manifold boundary) is left open.
+//! vertex where two loops touch (a "bow tie") is visited once per loop. A loop along a
+//! non-orientable patch, whose faces do not all traverse it one way round, has no directed
+//! cycle: its edges are then followed without their direction and the loop is listed the way
+//! most of them point (`docs/quality.md` §29; `prepare` orients every orientable mesh first).
+//! Edges with more than two faces are not boundary edges and are never capped; a walk that
+//! cannot close (a non-manifold boundary) is left open.
 //!
 //! Written here: capping is a few dozen lines on the crate's own [`Mesh`], and no maintained
 //! Rust crate offers hole filling on an indexed triangle mesh without a geometry kernel of
@@ -139,7 +142,10 @@ pub const MIN_CAP_ANGLE_DEG: f64 = 1.0;
 pub const DOME_HEIGHT: f64 = 0.5;
 
 /// The boundary loops of `faces` over `n` vertices: each loop lists its vertices in the
-/// direction the faces traverse its edges. Loops that cannot be closed are omitted.
+/// direction the faces traverse its edges. A loop along a non-orientable patch, whose faces do
+/// not all traverse it one way round, is followed as an undirected cycle and listed in the
+/// direction most of its edges are traversed (`docs/quality.md` §29). Boundary chains that
+/// cannot be closed (next to a non-manifold edge) are omitted.
 pub fn boundary_loops(n: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
     let mut count: HashMap<(u32, u32), u32> = HashMap::with_capacity(faces.len() * 3);
     for f in faces {
@@ -197,7 +203,69 @@ pub fn boundary_loops(n: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
             }
         }
     }
+    // The boundary edges no directed cycle took, followed without their direction.
+    let mut taken: HashMap<(u32, u32), ()> = HashMap::new();
+    for lp in &loops {
+        for (k, &a) in lp.iter().enumerate() {
+            let b = lp[(k + 1) % lp.len()];
+            taken.insert((a.min(b), a.max(b)), ());
+        }
+    }
+    let mut rest: Vec<(u32, u32)> = Vec::new();
+    for &a in &tails {
+        for &b in &next[a as usize] {
+            if !taken.contains_key(&(a.min(b), a.max(b))) {
+                rest.push((a, b));
+            }
+        }
+    }
+    if !rest.is_empty() {
+        loops.extend(undirected_cycles(&rest));
+    }
     loops
+}
+
+/// Closed cycles through the directed boundary edges `edges`, followed without regard to their
+/// direction (each edge once), each listed in the direction most of its edges point; chains
+/// that do not close are dropped.
+fn undirected_cycles(edges: &[(u32, u32)]) -> Vec<Vec<u32>> {
+    let mut at: HashMap<u32, Vec<usize>> = HashMap::new();
+    for (i, &(a, b)) in edges.iter().enumerate() {
+        at.entry(a).or_default().push(i);
+        at.entry(b).or_default().push(i);
+    }
+    let mut used = vec![false; edges.len()];
+    let mut out = Vec::new();
+    for first in 0..edges.len() {
+        if used[first] {
+            continue;
+        }
+        used[first] = true;
+        let (start, mut cur) = edges[first];
+        let mut lp = vec![start];
+        let mut forward = 1i64;
+        let mut closed = false;
+        while let Some(&e) = at[&cur].iter().find(|&&e| !used[e]) {
+            used[e] = true;
+            lp.push(cur);
+            let (a, b) = edges[e];
+            let other = if a == cur { b } else { a };
+            forward += if a == cur { 1 } else { -1 };
+            cur = other;
+            if cur == start {
+                closed = true;
+                break;
+            }
+        }
+        if closed && lp.len() >= 3 {
+            if forward < 0 {
+                lp.reverse();
+                lp.rotate_right(1);
+            }
+            out.push(lp);
+        }
+    }
+    out
 }
 
 /// `mesh` with every boundary loop not longer than `opts.max_length · sqrt(area)` closed by a
@@ -777,6 +845,42 @@ mod tests {
         // Capping is idempotent: nothing is left to cap.
         let (_, again) = cap_boundaries(&c, &ALL);
         assert_eq!(again, CapStats::default());
+    }
+
+    #[test]
+    fn a_rim_whose_faces_disagree_on_its_direction_is_still_found_and_capped() {
+        // A hole (the faces around vertex 0), then one face on its rim wound the other way,
+        // as on a non-orientable patch: no directed cycle runs round the rim.
+        let s = generate::icosphere(3);
+        let ring: Vec<u32> = (0..s.vertices.len() as u32)
+            .filter(|&v| v != 0 && s.faces.iter().any(|f| f.contains(&0) && f.contains(&v)))
+            .collect();
+        let mut faces: Vec<[u32; 3]> = s
+            .faces
+            .iter()
+            .copied()
+            .filter(|f| !f.contains(&0))
+            .collect();
+        let oriented = boundary_loops(s.vertices.len(), &faces);
+        assert_eq!(oriented.len(), 1);
+        let rim = faces
+            .iter()
+            .position(|f| f.iter().filter(|v| ring.contains(v)).count() == 2)
+            .unwrap();
+        faces[rim].swap(0, 1);
+        let loops = boundary_loops(s.vertices.len(), &faces);
+        assert_eq!(loops.len(), 1);
+        let mut got = loops[0].clone();
+        got.sort_unstable();
+        assert_eq!(got, ring);
+        // Listed the way most of its edges are traversed: as the oriented rim, up to rotation.
+        let lp = &loops[0];
+        let k = lp.iter().position(|&v| v == oriented[0][0]).unwrap();
+        let rotated: Vec<u32> = (0..lp.len()).map(|i| lp[(k + i) % lp.len()]).collect();
+        assert_eq!(rotated, oriented[0]);
+        let (c, st) = cap_boundaries(&Mesh::new(s.vertices.clone(), faces), &ALL);
+        assert_eq!((st.loops, st.loops_left_open), (1, 0));
+        assert!(boundary_loops(c.vertices.len(), &c.faces).is_empty());
     }
 
     #[test]

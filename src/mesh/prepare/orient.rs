@@ -7,8 +7,8 @@
 //! direction. A hole next to a flipped face has no directed boundary cycle, so capping skipped
 //! it without counting it (`docs/quality.md` §29: a hole of `david-holes3` and one of
 //! `michael-holes2`, whose source meshes, TOSCA's david and michael, carry a flipped patch of
-//! about 170 faces on the head). A loop on a non-orientable patch still has no directed cycle
-//! and is still skipped (`camel-iso8`'s crack).
+//! about 170 faces on the head). A loop on a non-orientable patch has no directed cycle even
+//! then; capping follows it without its direction ([`crate::mesh::cap::boundary_loops`]).
 
 use crate::mesh::buckets::Buckets;
 use crate::mesh::{cross, norm, sub};
