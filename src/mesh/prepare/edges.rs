@@ -1,5 +1,6 @@
 //! Steps 3 and 6 of [`prepare`](super::prepare): exact duplicate faces, and the edge statistics of
-//! the topology report (boundary edges and loops, non-manifold and inconsistently oriented edges).
+//! the topology report (boundary edges and loops, non-manifold and inconsistently oriented edges);
+//! the walk over the undirected edges ([`for_each_edge`]) is shared with step 5′'s orientation.
 
 use crate::mesh::buckets::Buckets;
 
@@ -45,27 +46,28 @@ pub(super) struct Topology {
     pub(super) inconsistent: usize,
 }
 
-/// Edge statistics of a mesh without degenerate faces: half-edges bucketed by their smaller
-/// vertex (counting sort) and sorted within each bucket.
-pub(super) fn analyse_edges(n: usize, faces: &[[u32; 3]]) -> Topology {
-    // (other vertex, forward = half-edge goes from the smaller to the larger vertex)
+/// The undirected edges of `faces` over `n` vertices, each visited once with its half-edges:
+/// `visit(v, group)` gets edge `(v, group[0].0)`'s half-edges as `(larger vertex, payload)`,
+/// sorted, `payload(face index, forward)` computed per half-edge (`forward`: it runs from the
+/// smaller vertex to the larger). Half-edges are bucketed by their smaller vertex (the counting
+/// sort of [`Buckets`]) and sorted within each bucket. Shared by the topology report and the
+/// orientation pass.
+pub(super) fn for_each_edge<T: Copy + Default + Ord>(
+    n: usize,
+    faces: &[[u32; 3]],
+    payload: impl Fn(u32, bool) -> T,
+    mut visit: impl FnMut(u32, &[(u32, T)]),
+) {
     let mut buckets = Buckets::new(
         n,
-        faces.iter().flat_map(|f| {
+        faces.iter().enumerate().flat_map(|(fi, f)| {
+            let payload = &payload;
             (0..3).map(move |k| {
                 let (a, b) = (f[k], f[(k + 1) % 3]);
-                (a.min(b), (a.max(b), a < b))
+                (a.min(b), (a.max(b), payload(fi as u32, a < b)))
             })
         }),
     );
-    let mut topo = Topology {
-        edges: 0,
-        boundary_edges: 0,
-        boundary_loops: 0,
-        nonmanifold_edges: 0,
-        inconsistent: 0,
-    };
-    let mut boundary: Vec<(u32, u32)> = Vec::new();
     for v in 0..n {
         let bucket = buckets.get_mut(v);
         bucket.sort_unstable();
@@ -75,19 +77,39 @@ pub(super) fn analyse_edges(n: usize, faces: &[[u32; 3]]) -> Topology {
             while e < bucket.len() && bucket[e].0 == bucket[s].0 {
                 e += 1;
             }
+            visit(v as u32, &bucket[s..e]);
+            s = e;
+        }
+    }
+}
+
+/// Edge statistics of a mesh without degenerate faces ([`for_each_edge`]).
+pub(super) fn analyse_edges(n: usize, faces: &[[u32; 3]]) -> Topology {
+    let mut topo = Topology {
+        edges: 0,
+        boundary_edges: 0,
+        boundary_loops: 0,
+        nonmanifold_edges: 0,
+        inconsistent: 0,
+    };
+    let mut boundary: Vec<(u32, u32)> = Vec::new();
+    for_each_edge(
+        n,
+        faces,
+        |_, forward| forward,
+        |v, group| {
             topo.edges += 1;
-            match e - s {
-                1 => boundary.push((v as u32, bucket[s].0)),
-                2 => {
-                    if bucket[s].1 == bucket[s + 1].1 {
+            match group {
+                [(w, _)] => boundary.push((v, *w)),
+                [(_, f), (_, g)] => {
+                    if f == g {
                         topo.inconsistent += 1;
                     }
                 }
                 _ => topo.nonmanifold_edges += 1,
             }
-            s = e;
-        }
-    }
+        },
+    );
     topo.boundary_edges = boundary.len();
     topo.boundary_loops = count_boundary_loops(n, &boundary);
     topo

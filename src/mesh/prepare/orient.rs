@@ -10,6 +10,7 @@
 //! about 170 faces on the head). A loop on a non-orientable patch has no directed cycle even
 //! then; capping follows it without its direction ([`crate::mesh::cap::boundary_loops`]).
 
+use super::edges::for_each_edge;
 use crate::mesh::buckets::Buckets;
 use crate::mesh::{cross, norm, sub};
 
@@ -21,41 +22,25 @@ use crate::mesh::{cross, norm, sub};
 /// breadth-first traversal from its first face; the edges left inconsistent are then what the
 /// topology report counts. Edges with one face or more than two are not crossed.
 ///
-/// Deterministic; linear but for sorting each vertex's few edges (the counting sort of
-/// [`Buckets`], as the topology report's edge statistics).
+/// Deterministic; linear but for sorting each vertex's few edges ([`for_each_edge`], as the
+/// topology report's edge statistics).
 pub(super) fn orient_coherently(vertices: &[[f64; 3]], faces: &mut [[u32; 3]]) -> usize {
     let nf = faces.len();
-    // Half-edges bucketed by their smaller vertex: (larger vertex, face, forward).
-    let mut half = Buckets::new(
-        vertices.len(),
-        faces.iter().enumerate().flat_map(|(fi, f)| {
-            (0..3).map(move |k| {
-                let (a, b) = (f[k], f[(k + 1) % 3]);
-                (a.min(b), (a.max(b), fi as u32, a < b))
-            })
-        }),
-    );
     // Face adjacency through two-face edges, with the parity of the flip that makes the pair
     // coherent: 1 when both faces traverse the edge the same way.
     let mut pairs: Vec<(u32, (u32, u8))> = Vec::new();
-    for v in 0..vertices.len() {
-        let bucket = half.get_mut(v);
-        bucket.sort_unstable();
-        let mut s = 0;
-        while s < bucket.len() {
-            let mut e = s + 1;
-            while e < bucket.len() && bucket[e].0 == bucket[s].0 {
-                e += 1;
-            }
-            if e - s == 2 {
-                let (f, g) = (bucket[s].1, bucket[s + 1].1);
-                let p = u8::from(bucket[s].2 == bucket[s + 1].2);
+    for_each_edge(
+        vertices.len(),
+        faces,
+        |face, forward| (face, forward),
+        |_, group| {
+            if let [(_, (f, a)), (_, (g, b))] = *group {
+                let p = u8::from(a == b);
                 pairs.push((f, (g, p)));
                 pairs.push((g, (f, p)));
             }
-            s = e;
-        }
-    }
+        },
+    );
     let adjacent = Buckets::new(nf, pairs);
     let area = |f: &[u32; 3]| {
         let [a, b, c] = f.map(|i| vertices[i as usize]);
