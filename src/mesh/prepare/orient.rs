@@ -41,7 +41,12 @@ pub(super) fn orient_coherently(vertices: &[[f64; 3]], faces: &mut [[u32; 3]]) -
             }
         },
     );
-    let adjacent = Buckets::new(nf, pairs);
+    // Neighbours in face order, so that the traversal (and, on a non-orientable patch, which
+    // edges stay inconsistent) depends on the face order alone, not on the vertex numbering.
+    let mut adjacent = Buckets::new(nf, pairs);
+    for f in 0..nf {
+        adjacent.get_mut(f).sort_unstable();
+    }
     let area = |f: &[u32; 3]| {
         let [a, b, c] = f.map(|i| vertices[i as usize]);
         0.5 * norm(cross(sub(b, a), sub(c, a)))
