@@ -424,31 +424,28 @@ fn each_patch_keeps_the_orientation_of_its_larger_area() {
     let up = |f: &[u32; 3]| f.iter().map(|&i| m.vertices[i as usize][2]).sum::<f64>() > 2.1;
     let cap = m.faces.iter().filter(|f| up(f)).count();
     assert!(cap > 20 && 4 * cap < m.faces.len(), "{cap}");
-    // The cap flipped: it turns back, the rest keeps its outward normals.
-    let mut a = m.clone();
-    for f in a.faces.iter_mut().filter(|f| up(f)) {
-        f.swap(0, 1);
-    }
-    let (out, r) = prepare(&a, &raw()).unwrap();
-    assert_eq!(
-        (r.reoriented_faces, r.inconsistent_orientation_edges),
-        (cap, 0)
-    );
-    for (o, f) in out.faces.iter().zip(&m.faces) {
-        assert_eq!(canonical(*o), canonical(*f));
-    }
-    // Everything but the cap flipped: the cap is the smaller area, so it is the one that turns.
-    let mut b = m.clone();
-    for f in b.faces.iter_mut().filter(|f| !up(f)) {
-        f.swap(0, 1);
-    }
-    let (out, r) = prepare(&b, &raw()).unwrap();
-    assert_eq!(
-        (r.reoriented_faces, r.inconsistent_orientation_edges),
-        (cap, 0)
-    );
-    for (o, f) in out.faces.iter().zip(&m.faces) {
-        assert_eq!(canonical(*o), canonical([f[1], f[0], f[2]]));
+    // `m` with the faces `pick` selects wound the other way.
+    let flipped = |pick: &dyn Fn(&[u32; 3]) -> bool| {
+        let mut x = m.clone();
+        for f in x.faces.iter_mut().filter(|f| pick(f)) {
+            f.swap(0, 1);
+        }
+        x
+    };
+    // The cap flipped: it turns back, the rest keeps its outward normals. Everything but the
+    // cap flipped: the cap is the smaller area, so it is the one that turns.
+    let a = flipped(&up);
+    let mut b = flipped(&|f: &[u32; 3]| !up(f));
+    for (x, all_turned) in [(&a, false), (&b, true)] {
+        let (out, r) = prepare(x, &raw()).unwrap();
+        assert_eq!(
+            (r.reoriented_faces, r.inconsistent_orientation_edges),
+            (cap, 0)
+        );
+        for (o, f) in out.faces.iter().zip(&m.faces) {
+            let want = if all_turned { [f[1], f[0], f[2]] } else { *f };
+            assert_eq!(canonical(*o), canonical(want));
+        }
     }
     // Two components (apart, so that welding keeps them apart) are oriented each on its own.
     for v in &mut b.vertices {

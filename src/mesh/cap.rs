@@ -63,7 +63,7 @@
 //! its own.
 
 use super::{cross, dot, norm, sub, Mesh};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 /// What [`cap_boundaries`] did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -204,17 +204,17 @@ pub fn boundary_loops(n: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
         }
     }
     // The boundary edges no directed cycle took, followed without their direction.
-    let mut taken: HashMap<(u32, u32), ()> = HashMap::new();
+    let mut taken: HashSet<(u32, u32)> = HashSet::new();
     for lp in &loops {
         for (k, &a) in lp.iter().enumerate() {
             let b = lp[(k + 1) % lp.len()];
-            taken.insert((a.min(b), a.max(b)), ());
+            taken.insert((a.min(b), a.max(b)));
         }
     }
     let mut rest: Vec<(u32, u32)> = Vec::new();
     for &a in &tails {
         for &b in &next[a as usize] {
-            if !taken.contains_key(&(a.min(b), a.max(b))) {
+            if !taken.contains(&(a.min(b), a.max(b))) {
                 rest.push((a, b));
             }
         }
@@ -259,8 +259,7 @@ fn undirected_cycles(edges: &[(u32, u32)]) -> Vec<Vec<u32>> {
         }
         if closed && lp.len() >= 3 {
             if forward < 0 {
-                lp.reverse();
-                lp.rotate_right(1);
+                lp[1..].reverse();
             }
             out.push(lp);
         }
@@ -474,7 +473,7 @@ fn delaunay_flips(vertices: &[[f64; 3]], faces: &mut [[u32; 3]], first_vertex: u
             }
         }
         let mut touched = vec![false; n];
-        let mut created = std::collections::HashSet::new();
+        let mut created = HashSet::new();
         let mut flipped = 0usize;
         let mut edges: Vec<(u32, u32)> = edge_faces
             .iter()

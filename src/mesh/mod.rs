@@ -73,7 +73,12 @@ impl Mesh {
 
 /// Area of one triangle of `mesh`.
 pub fn triangle_area(mesh: &Mesh, f: &[u32; 3]) -> f64 {
-    let [a, b, c] = f.map(|i| mesh.vertices[i as usize]);
+    face_area(&mesh.vertices, f)
+}
+
+/// [`triangle_area`] over a bare vertex array (for passes that hold vertices and faces apart).
+pub(crate) fn face_area(vertices: &[[f64; 3]], f: &[u32; 3]) -> f64 {
+    let [a, b, c] = f.map(|i| vertices[i as usize]);
     0.5 * norm(cross(sub(b, a), sub(c, a)))
 }
 

@@ -12,7 +12,7 @@
 
 use super::edges::for_each_edge;
 use crate::mesh::buckets::Buckets;
-use crate::mesh::{cross, norm, sub};
+use crate::mesh::face_area;
 
 /// Flips faces of `faces` (over `vertices`) so that the faces of each patch (faces connected
 /// through edges with exactly two faces) are coherently oriented, and returns how many were
@@ -47,10 +47,6 @@ pub(super) fn orient_coherently(vertices: &[[f64; 3]], faces: &mut [[u32; 3]]) -
     for f in 0..nf {
         adjacent.get_mut(f).sort_unstable();
     }
-    let area = |f: &[u32; 3]| {
-        let [a, b, c] = f.map(|i| vertices[i as usize]);
-        0.5 * norm(cross(sub(b, a), sub(c, a)))
-    };
     // Breadth-first per patch, in face order: flip[f] relative to the patch's first face.
     let mut flip: Vec<Option<u8>> = vec![None; nf];
     let mut flipped = 0;
@@ -77,9 +73,9 @@ pub(super) fn orient_coherently(vertices: &[[f64; 3]], faces: &mut [[u32; 3]]) -
         let (mut keep, mut other) = (0.0, 0.0);
         for &f in &patch {
             if flip[f as usize] == Some(0) {
-                keep += area(&faces[f as usize]);
+                keep += face_area(vertices, &faces[f as usize]);
             } else {
-                other += area(&faces[f as usize]);
+                other += face_area(vertices, &faces[f as usize]);
             }
         }
         let turn = if other > keep { 0 } else { 1 };
