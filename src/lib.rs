@@ -22,6 +22,8 @@ pub mod scale;
 pub mod search;
 pub mod server;
 pub mod signature;
+#[cfg(test)]
+mod source_fingerprint;
 pub mod spectrum;
 pub mod storage;
 pub mod worker;

@@ -38,6 +38,8 @@ pub struct EvalArgs {
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Cache folder (default `$XDG_CACHE_HOME/shapeseek/eval`, else `./.cache/shapeseek-eval`).
+    /// Entries are keyed on the mesh bytes, the options and the sources this binary was built
+    /// from: another build (or version) recomputes instead of reading them.
     #[arg(long)]
     pub cache: Option<PathBuf>,
     /// Do not read or write the cache.

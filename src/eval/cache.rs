@@ -1,8 +1,11 @@
 //! On-disk cache of analyses (prepared mesh + spectrum) and signatures.
 //!
 //! Layout under the cache directory:
-//! * `analysis/<h>.bin`, `h = sha256(mesh file bytes ‖ AnalyzeOptions as JSON)`: the prepared mesh,
-//!   prepare report, eigen statistics, timings and spectrum of one mesh file;
+//! * `analysis/<h>.bin`, `h = sha256(sha256(mesh file bytes) ‖ AnalyzeOptions as JSON ‖ the
+//!   build's analysis version)`: the prepared mesh, prepare report, eigen statistics, timings
+//!   and spectrum of one mesh file. The version names the crate version, the
+//!   `ALGORITHM_REVISION` and the fingerprint of the sources the binary was built from
+//!   (`super::analysis_version`), so another build never reads this build's entries;
 //! * `signature/<h>.bin`, `h = sha256(analysis key ‖ SignatureSpec::key())`: the bytes of
 //!   `Signature::to_bytes`;
 //! * `index/<analysis key>.bin`: which signature specifications are cached for that analysis

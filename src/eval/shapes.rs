@@ -79,15 +79,21 @@ impl Progress {
     }
 }
 
-/// Part of the analysis cache key besides the mesh bytes and the options: the crate version and
-/// [`crate::revision_tag`], so that neither a new release nor a later revision of the numerical
-/// core reuses spectra or signatures computed by older code (the signature keys extend the
-/// analysis key).
+/// Part of the analysis cache key besides the mesh bytes and the options: the crate version,
+/// [`crate::revision_tag`] and the fingerprint of the sources the binary was built from
+/// (`build.rs`, `src/source_fingerprint.rs`), so that no other build reuses spectra or
+/// signatures this one did not compute (the signature keys extend the analysis key). The
+/// revision alone did not suffice: two builds at one revision that analyse differently — a
+/// candidate under measurement, a fix without its bump — served each other's analyses, and
+/// two figures of `docs/quality.md` §28 came from another build's caps (§29). A stored index
+/// (`serve`) keys on the revision alone, so that a change that leaves the analysis alone does
+/// not make it recompute every shape.
 pub(crate) fn analysis_version() -> String {
     format!(
-        "shapeseek {}{}",
+        "shapeseek {}{} src {}",
         env!("CARGO_PKG_VERSION"),
-        crate::revision_tag()
+        crate::revision_tag(),
+        env!("SHAPESEEK_SOURCE_FINGERPRINT")
     )
 }
 
