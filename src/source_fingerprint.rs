@@ -1,6 +1,6 @@
 // The source fingerprint of the build, shared by `build.rs` (which `include!`s this file and
 // passes the value to the crate as `SHAPESEEK_SOURCE_FINGERPRINT`) and the library's tests. Plain
-// std only: the build script cannot use the crate's dependencies.
+// std only (FNV-1a is a few lines), so that the build script needs no build-dependencies.
 //
 // Why (`docs/quality.md` §29–§30): eval's cache keyed an analysis on the mesh bytes, the options
 // and `ALGORITHM_REVISION`, not on the code, so two builds at the same revision that analyse
