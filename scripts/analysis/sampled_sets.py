@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Scores a configuration on many small benchmark sets drawn from larger ones, e.g. sets built
 like issue 14's hidden set (three humans and two animals, 35 shapes each) from characters that
-never informed a choice (docs/quality.md §31):
+never informed a choice (docs/quality.md §32):
 
     python3 scripts/analysis/sampled_sets.py --pick 3 faust/manifest.csv --pick 2 t2/manifest.csv \\
         --samples 40 --seed 1 --cache C --out OUT [--config default] [--bin target/release/shapeseek]
@@ -16,13 +16,14 @@ and every class ≥ 70 (the hidden set's bar).
 """
 import argparse
 import csv
-import itertools
 import json
+import math
 import os
 import random
 import subprocess
 import sys
 
+# As matrix_ap.TR; not imported from there, which needs numpy, so this runs on plain python3.
 TR = ["null", "isometry", "topology", "isometry+topology", "partiality", "triangulation", "noise", "scale"]
 HEAD = ["Null", "Iso", "Topo", "Iso+Topo", "Part", "Triang.", "Noise", "Scale", "All"]
 
@@ -54,9 +55,7 @@ def main():
         if int(n) > len(classes):
             sys.exit(f"{path}: {len(classes)} classes, cannot pick {n}")
         pools.append((int(n), rows, classes))
-    combos = 1
-    for n, _, classes in pools:
-        combos *= len(list(itertools.combinations(classes, n)))
+    combos = math.prod(math.comb(len(classes), n) for n, _, classes in pools)
     if a.samples > combos:
         sys.exit(f"only {combos} distinct samples exist")
     rng = random.Random(a.seed)
@@ -86,7 +85,8 @@ def main():
         done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if done.returncode != 0:
             sys.exit(f"{' '.join(cmd)} failed:\n{done.stderr[-2000:]}")
-        res = json.load(open(js))["results"]
+        with open(js) as f:
+            res = json.load(f)["results"]
         hit = [r for r in res if r["config"] == a.config] or (res if len(res) == 1 else [])
         if not hit:
             sys.exit(f"{js}: configurations {[r['config'] for r in res]}; name one with --config")
