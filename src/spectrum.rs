@@ -7,7 +7,7 @@
 
 use crate::eigen::{smallest_eigenpairs, EigenOptions, EigenStats};
 use crate::laplace::{laplacian, LaplacianKind};
-use crate::mesh::prepare::{prepare_traced, PrepareOptions, PrepareReport, Traced};
+use crate::mesh::prepare::{prepare, PrepareOptions, PrepareReport};
 use crate::mesh::Mesh;
 use faer::Mat;
 use serde::{Deserialize, Serialize};
@@ -118,38 +118,29 @@ pub struct Analysis {
     pub eigen_stats: EigenStats,
     /// Time per stage.
     pub timings: StageTimings,
-    /// The vertices of `mesh` that boundary capping added ([`Traced::cap_vertices`]),
-    /// ascending; empty without capping.
-    pub cap_vertices: Vec<u32>,
 }
 
 /// Prepares `mesh` and computes its spectrum.
 pub fn analyze(mesh: &Mesh, opts: &AnalyzeOptions) -> crate::Result<Analysis> {
     let t0 = Instant::now();
-    let prepared = prepare_traced(mesh, &opts.prepare)?;
+    let (prepared, report) = prepare(mesh, &opts.prepare)?;
     let prepare_ms = t0.elapsed().as_secs_f64() * 1e3;
-    analyze_prepared(prepared, opts, prepare_ms)
+    analyze_prepared(prepared, report, opts, prepare_ms)
 }
 
-/// The spectrum of a mesh already prepared with `opts.prepare` ([`prepare_traced`]'s output,
-/// and the time it took): the second half of [`analyze`].
+/// The spectrum of a mesh already prepared with `opts.prepare` ([`prepare`]'s output and
+/// report, and the time it took): the second half of [`analyze`].
 pub fn analyze_prepared(
-    prepared: Traced,
+    prepared: Mesh,
+    report: PrepareReport,
     opts: &AnalyzeOptions,
     prepare_ms: f64,
 ) -> crate::Result<Analysis> {
-    let Traced {
-        mesh: prepared,
-        report,
-        cap_vertices,
-        ..
-    } = prepared;
     let (spectrum, eigen_stats, st) =
         compute_spectrum_with(&prepared, opts.laplacian, &opts.eigen)?;
     Ok(Analysis {
         mesh: prepared,
         report,
-        cap_vertices,
         spectrum,
         eigen_stats,
         timings: StageTimings {

@@ -427,38 +427,6 @@ fn capping_and_cutting_together_count_the_dropped_vertices_once() {
         "{capped:?}"
     );
     assert_eq!(capped.vertices_out, p.vertices.len());
-    // The caps' vertices are traced through the cut and its second preparation: as many as the
-    // cap added, none of them an input vertex's image, all inside the hole (around its centre).
-    let t = shapeseek::mesh::prepare::prepare_traced(&m, &both).unwrap();
-    assert_eq!(t.mesh, p);
-    let added = capped.capped.map(|c| c.vertices_added).unwrap();
-    assert!(added > 0);
-    assert_eq!(t.cap_vertices.len(), added);
-    assert!(t.cap_vertices.windows(2).all(|w| w[0] < w[1]));
-    let images: std::collections::HashSet<u32> = t.map.iter().flatten().copied().collect();
-    assert!(t.cap_vertices.iter().all(|v| !images.contains(v)));
-    let c = m.vertices[centre as usize];
-    let ring = m.faces.iter().flatten().map(|&i| m.vertices[i as usize]);
-    let edge = ring.map(|q| dist(q, c)).fold(f64::INFINITY, f64::min);
-    for &v in &t.cap_vertices {
-        let d = dist(p.vertices[v as usize], c);
-        assert!(
-            d < 1.5 * edge,
-            "cap vertex {v} at {d} from the hole's centre"
-        );
-    }
-    // Without the cut the caps' vertices are the last ones.
-    let capped_only = PrepareOptions {
-        cut_handles: None,
-        ..both.clone()
-    };
-    let u = shapeseek::mesh::prepare::prepare_traced(&m, &capped_only).unwrap();
-    let n = u.mesh.vertices.len() as u32;
-    assert_eq!(u.cap_vertices, (n - added as u32..n).collect::<Vec<_>>());
-}
-
-fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
 #[test]

@@ -220,8 +220,6 @@ struct AnalysisHeader {
     timings: StageTimings,
     eigenvalues: Vec<f64>,
     residuals: Vec<f64>,
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    cap_vertices: Vec<u32>,
 }
 
 fn encode_analysis(a: &Analysis) -> Vec<u8> {
@@ -237,7 +235,6 @@ fn encode_analysis(a: &Analysis) -> Vec<u8> {
         timings: a.timings.clone(),
         eigenvalues: a.spectrum.eigenvalues.clone(),
         residuals: a.spectrum.residuals.clone(),
-        cap_vertices: a.cap_vertices.clone(),
     };
     let h = serde_json::to_vec(&header).expect("header serialises");
     let mut out = Vec::with_capacity(8 + h.len() + n * 24 + m * 12 + n * 8 + n * k * 8);
@@ -270,9 +267,7 @@ fn decode_analysis(p: &[u8]) -> Option<Analysis> {
     let vertices: Vec<[f64; 3]> = coords.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
     let idx = r.u32s(m.checked_mul(3)?)?;
     let faces: Vec<[u32; 3]> = idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-    if faces.iter().any(|f| f.iter().any(|&i| i as usize >= n))
-        || header.cap_vertices.iter().any(|&i| i as usize >= n)
-    {
+    if faces.iter().any(|f| f.iter().any(|&i| i as usize >= n)) {
         return None;
     }
     let mass = r.f64s(n)?;
@@ -292,6 +287,5 @@ fn decode_analysis(p: &[u8]) -> Option<Analysis> {
         },
         eigen_stats: header.eigen_stats,
         timings: header.timings,
-        cap_vertices: header.cap_vertices,
     })
 }

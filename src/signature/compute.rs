@@ -12,7 +12,6 @@ use crate::{Error, Result};
 use faer::Mat;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::borrow::Cow;
 
 /// Stored values of one channel.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -87,21 +86,6 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
         return Err(Error::EmptyMesh("no vertices".into()));
     }
     let area: f64 = sp.mass.iter().sum();
-    // The quadratures' vertex masses: the caps' weighed by `cap_pair_weight`, total kept.
-    let mass: Cow<'_, [f64]> = match spec.cap_pair_weight {
-        Some(w) if w != 1.0 && !analysis.cap_vertices.is_empty() => {
-            let mut m = sp.mass.clone();
-            for &i in &analysis.cap_vertices {
-                m[i as usize] *= w;
-            }
-            let kept: f64 = m.iter().sum();
-            if kept > 0.0 {
-                m.iter_mut().for_each(|x| *x *= area / kept);
-            }
-            Cow::Owned(m)
-        }
-        _ => Cow::Borrowed(&sp.mass),
-    };
     let zero_tol = ZERO_MODE_TOLERANCE * 4.0 * std::f64::consts::PI / area;
     let nonzero: Vec<usize> = (0..sp.eigenvalues.len())
         .filter(|&i| sp.eigenvalues[i] > zero_tol)
@@ -172,11 +156,11 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
         let f = fps
             .as_ref()
             .expect("farthest points computed for every prefix");
-        f.quadrature(count, &mass)
+        f.quadrature(count, &sp.mass)
     };
     let l2_quad = need_l2.then(|| {
         if l2_samples == 0 {
-            Quadrature::all_vertices(&mass)
+            Quadrature::all_vertices(&sp.mass)
         } else {
             cells(l2_samples)
         }
@@ -185,7 +169,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
     let geo_quad = need_geo.then(|| cells(geo_sources));
 
     let phi = sp.eigenvectors.as_ref();
-    let l2_rows = l2_quad.as_ref().map(|q| q.rows(phi, &mass, cell_means));
+    let l2_rows = l2_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means));
     let near_field_of = |quad: &Option<Quadrature>| match (quad, &graph) {
         (Some(q), Some(g)) if near_field && !cell_means => match (&q.points, &q.owner) {
             (Some(points), Some(owner)) => Some(NearField::new(
@@ -193,7 +177,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                 owner,
                 points.clone(),
                 &sp.eigenvectors,
-                &mass,
+                &sp.mass,
             )),
             _ => None,
         },
@@ -205,7 +189,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
         l2_rows,
         near,
         lp_near,
-        lp_rows: lp_quad.as_ref().map(|q| q.rows(phi, &mass, cell_means)),
+        lp_rows: lp_quad.as_ref().map(|q| q.rows(phi, &sp.mass, cell_means)),
         lp_nodes: lp_quad.as_ref().map(|q| q.point_rows(phi)),
         l2_quad,
         lp_quad,
@@ -260,7 +244,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                     mesh,
                     graph.as_ref().expect("graph built for geodesic channels"),
                     geo_quad.as_ref().expect("geodesic quadrature"),
-                    &mass,
+                    &sp.mass,
                     *radius,
                     q,
                 )),

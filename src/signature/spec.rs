@@ -448,16 +448,6 @@ pub struct SignatureSpec {
     /// ([`SignatureSpec::analysis_options`]). Omitted from the JSON (and key) when `None`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub smooth: Option<SmoothOptions>,
-    /// Weight of the caps' vertices in the pair measure of the distance distributions
-    /// (eq. 10's `da(x) da(y)`), relative to the surface the file gave: a cap
-    /// ([`SignatureSpec::cap_boundaries`]) closes the surface for the spectrum, but its points
-    /// are made up. The vertex masses of [`Analysis::cap_vertices`](crate::spectrum::Analysis)
-    /// are multiplied by this weight in every quadrature (pairs and integration nodes) and all
-    /// masses rescaled to keep the total area, so the distributions describe the given surface
-    /// (0) or the capped one (1, the same as `None`). Omitted from the JSON (and key) when
-    /// `None`.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub cap_pair_weight: Option<f64>,
 }
 
 impl Default for SignatureSpec {
@@ -477,7 +467,6 @@ impl Default for SignatureSpec {
             alternate_cut: None,
             cap_boundaries: None,
             smooth: None,
-            cap_pair_weight: None,
         }
     }
 }
@@ -612,11 +601,6 @@ pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
     }
     if let Some(Err(e)) = spec.cap_boundaries.map(|c| c.validate()) {
         return bad(format!("cap_boundaries: {e}"));
-    }
-    if let Some(w) = spec.cap_pair_weight {
-        if !(0.0..=1.0).contains(&w) {
-            return bad(format!("cap_pair_weight must be in [0, 1], got {w}"));
-        }
     }
     if let Some(Err(e)) = spec.smooth.map(|c| c.validate()) {
         return bad(format!("smooth: {e}"));

@@ -14,7 +14,7 @@
 
 use super::compute::{compute_signature, Signature};
 use super::spec::SignatureSpec;
-use crate::mesh::prepare::prepare_traced;
+use crate::mesh::prepare::prepare;
 use crate::mesh::Mesh;
 use crate::spectrum::{analyze, analyze_prepared, Analysis, AnalyzeOptions};
 use crate::Result;
@@ -33,12 +33,12 @@ pub fn alternate_analysis(
 ) -> Option<Analysis> {
     let opts = spec.alternate_analysis_options(base)?;
     let t0 = Instant::now();
-    let prepared = prepare_traced(mesh, &opts.prepare).ok()?;
-    if prepared.mesh.vertices == first.mesh.vertices && prepared.mesh.faces == first.mesh.faces {
+    let (prepared, report) = prepare(mesh, &opts.prepare).ok()?;
+    if prepared.vertices == first.mesh.vertices && prepared.faces == first.mesh.faces {
         return None;
     }
     let ms = t0.elapsed().as_secs_f64() * 1e3;
-    analyze_prepared(prepared, &opts, ms).ok()
+    analyze_prepared(prepared, report, &opts, ms).ok()
 }
 
 /// The second version's signature of `mesh` ([`alternate_analysis`], then its channels under

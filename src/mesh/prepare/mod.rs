@@ -246,30 +246,6 @@ pub fn prepare_with_map(
     mesh: &Mesh,
     opts: &PrepareOptions,
 ) -> Result<(Mesh, PrepareReport, Vec<Option<u32>>)> {
-    prepare_traced(mesh, opts).map(|t| (t.mesh, t.report, t.map))
-}
-
-/// What [`prepare_traced`] returns: the prepared mesh, its report, and where its vertices came
-/// from.
-#[derive(Debug, Clone)]
-pub struct Traced {
-    /// The prepared mesh ([`prepare`]'s).
-    pub mesh: Mesh,
-    /// What preparation found and changed.
-    pub report: PrepareReport,
-    /// For each input vertex, its index in `mesh` ([`prepare_with_map`]'s).
-    pub map: Vec<Option<u32>>,
-    /// The vertices of `mesh` that boundary capping added (step 5a), ascending: points of no
-    /// input surface, which a signature may weigh apart
-    /// ([`crate::signature::SignatureSpec::cap_pair_weight`]). Empty without capping.
-    pub cap_vertices: Vec<u32>,
-}
-
-/// Like [`prepare_with_map`], also telling which output vertices the caps added.
-///
-/// # Errors
-/// As [`prepare`].
-pub fn prepare_traced(mesh: &Mesh, opts: &PrepareOptions) -> Result<Traced> {
     validate_options(opts)?;
     let n = mesh.vertices.len();
     if n > u32::MAX as usize {
@@ -491,7 +467,6 @@ pub fn prepare_traced(mesh: &Mesh, opts: &PrepareOptions) -> Result<Traced> {
     }
     // 5a. Boundary capping (optional): cap vertices and faces are appended, so `map` holds.
     let mut capped = None;
-    let uncapped_vertices = vertices.len();
     if let Some(cap) = &opts.cap_boundaries {
         let (m, stats) = cap_boundaries(&Mesh::new(vertices, faces), cap);
         (vertices, faces) = (m.vertices, m.faces);
@@ -512,12 +487,7 @@ pub fn prepare_traced(mesh: &Mesh, opts: &PrepareOptions) -> Result<Traced> {
                     smooth: None,
                     ..opts.clone()
                 };
-                let Traced {
-                    mesh: out,
-                    report: mut r,
-                    map: map2,
-                    ..
-                } = prepare_traced(&cut_mesh, &inner)?;
+                let (out, mut r, map2) = prepare_with_map(&cut_mesh, &inner)?;
                 let genus_after = super::topology::surface_stats(&out)
                     .ok()
                     .and_then(|s| s.genus);
@@ -551,17 +521,7 @@ pub fn prepare_traced(mesh: &Mesh, opts: &PrepareOptions) -> Result<Traced> {
                             .and_then(|b| map2[b as usize])
                     })
                     .collect();
-                let mut cap_vertices: Vec<u32> = (uncapped_vertices..compacted.vertices.len())
-                    .filter_map(|c| cut_map[c].and_then(|b| map2[b as usize]))
-                    .collect();
-                cap_vertices.sort_unstable();
-                cap_vertices.dedup();
-                return Ok(Traced {
-                    mesh: out,
-                    report: r,
-                    map: composed,
-                    cap_vertices,
-                });
+                return Ok((out, r, composed));
             }
             Ok((_, rep, _)) => {
                 handle_cut = Some(HandleCutSummary {
@@ -641,14 +601,7 @@ pub fn prepare_traced(mesh: &Mesh, opts: &PrepareOptions) -> Result<Traced> {
         capped,
         smooth_steps,
     };
-    // Without a cut, capping was the last step to add or move indices.
-    let cap_vertices = (uncapped_vertices as u32..out.vertices.len() as u32).collect();
-    Ok(Traced {
-        mesh: out,
-        report,
-        map,
-        cap_vertices,
-    })
+    Ok((out, report, map))
 }
 
 fn validate_options(opts: &PrepareOptions) -> Result<()> {
