@@ -9,7 +9,9 @@
 # The meshes: ../shared/bench/mini (beside the repository) when it exists, else the sample set
 # that `shapeseek samples` generates from the project's own generators (6 classes x 5 poses,
 # remeshings and noise, in OBJ/PLY/OFF/STL/GLB/glTF). DEMO_SET=samples forces the samples.
-# Needs curl and python3 (for JSON). Loopback only.
+# Needs curl and python3 (for JSON). Loopback only. Exits non-zero when an upload or a search
+# fails, or (DEMO_MIN_TOP1=P) when fewer than P % of the queries have a top hit of their class:
+# CI runs it that way on the generated samples (.ci/run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA="${1:-./shapeseek-data}"
@@ -80,10 +82,14 @@ while True:
     if not cursor:
         break
 shapes = [s for s in shapes if s["name"] in cls]
-top1 = top3 = 0
+top1 = top3 = search_failed = 0
 results = {}
 for s in shapes:
-    _, res = call("POST", "/v1/search", json.dumps({"id": s["id"], "top_k": 5}).encode())
+    code, res = call("POST", "/v1/search", json.dumps({"id": s["id"], "top_k": 5}).encode())
+    if code != 200:
+        search_failed += 1
+        print(f"  {s['name']:<22} search HTTP {code}: {res.get('code')} {res.get('detail')}")
+        continue
     hits = res["hits"]
     results[s["name"]] = hits
     top1 += bool(hits) and cls.get(hits[0]["name"]) == cls[s["name"]]
@@ -93,14 +99,26 @@ for s in shapes:
 n = max(1, len(shapes))
 print(f"top hit of the query's class for {top1} of {len(shapes)} queries ({100.0 * top1 / n:.1f}%); "
       f"one of the top 3 for {top3} ({100.0 * top3 / n:.1f}%)")
+problems = []
+if failed:
+    problems.append(f"{failed} of {len(rows)} uploads failed")
+if search_failed:
+    problems.append(f"{search_failed} of {len(shapes)} searches failed")
+if len({s["name"] for s in shapes}) < len(rows) - failed:
+    problems.append(f"{len({s['name'] for s in shapes})} of the {len(rows) - failed} stored meshes listed")
+min_top1 = float(os.environ.get("DEMO_MIN_TOP1") or 0)
+if 100.0 * top1 / n < min_top1:
+    problems.append(f"top hit of the query's class for {100.0 * top1 / n:.1f}% < DEMO_MIN_TOP1={min_top1:g}%")
 # One query's hits in full (the first of a class with limbs when present).
 names = [s["name"] for s in shapes]
 q = next((x for x in names if x.startswith("quadruped-")), names[0] if names else None)
 if q:
     print(f"\nhits for {q} (class {cls[q]}; score: lower is closer):")
     print(f"  {'rank':>4}  {'name':<22} {'class':<12} {'score':>10}")
-    for h in results[q]:
+    for h in results.get(q, []):
         print(f"  {h['rank']:>4}  {h['name']:<22} {cls.get(h['name'], '?'):<12} {h['score'] if h['score'] is not None else float('inf'):>10.4f}")
+if problems:
+    sys.exit("demo failed: " + "; ".join(problems))
 PY
 echo
 echo "viewer: open $URL/ in a browser (drop a mesh file, or press \"search\" beside a stored shape)"
