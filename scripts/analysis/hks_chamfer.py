@@ -6,8 +6,8 @@ kernel signatures, and that distance alone as a ranking of the partial queries.
     shapeseek eval --manifest <manifest> --config default --matrices M.json
     python3 scripts/analysis/hks_chamfer.py HKS M.json [--times 0,2,4,6,8,10] [--shortlist 40] [--alone]
 
-Per shape: log of h(x, t) over the heat trace sum_k exp(-lambda_k t) (so a uniform rescaling of
-the shape changes little), at the chosen of hks_dump's 32 times; 200 points drawn by area
+Per shape: log of h(x, t) over the heat trace sum_k exp(-lambda_k t) (at unit area, a density
+over the surface), at the chosen of hks_dump's 32 times; 200 points drawn by area
 (queries) and 1000 (targets), seed 0. one_sided(a, b) = mean over a's points of the distance to
 the nearest of b's; a pair's distance = the smaller of its two directions, so a partial shape
 inside a complete one is close from either side. Re-ranking: shortlist position + alpha * rank
