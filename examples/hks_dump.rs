@@ -63,14 +63,23 @@ fn run() -> Res<()> {
             let mesh = read_path(base.join(p), &ReadLimits::default())?;
             let sp = analyze(&mesh, &opts)?.spectrum;
             let n = sp.eigenvectors.nrows();
+            // exp(−λ_j t) once per shape, not per vertex.
+            let decay: Vec<Vec<f64>> = times
+                .iter()
+                .map(|&t| {
+                    sp.eigenvalues
+                        .iter()
+                        .map(|l| (-l.max(0.0) * t).exp())
+                        .collect()
+                })
+                .collect();
             let mut bytes = Vec::with_capacity(4 * n * (TIMES + 1));
             for i in 0..n {
-                for &t in &times {
-                    let h: f64 = (0..sp.eigenvalues.len())
-                        .map(|j| {
-                            (-sp.eigenvalues[j].max(0.0) * t).exp()
-                                * sp.eigenvectors[(i, j)].powi(2)
-                        })
+                for w in &decay {
+                    let h: f64 = w
+                        .iter()
+                        .enumerate()
+                        .map(|(j, e)| e * sp.eigenvectors[(i, j)].powi(2))
                         .sum();
                     bytes.extend_from_slice(&(h as f32).to_le_bytes());
                 }
