@@ -60,8 +60,8 @@
 //! are vectors: L1 → `Σ|a−b|`, L∞ → `max|a−b|`, anything else → Euclidean.
 //!
 //! Agreement with the Python reference of the bench (REFERENCE.md) is measured by
-//! `cargo test --release --test mini_bench -- --ignored --nocapture`; the figures are in
-//! `docs/search.md`.
+//! `shapeseek eval --manifest ../shared/bench/mini/manifest.csv` (its tables show each figure
+//! beside the reference's); the figures are in `docs/search.md`.
 //!
 //! Scores from [`Prepared`] values of *different* calibrations are meaningless (bins differ);
 //! the caller keeps one epoch per scan.
