@@ -37,7 +37,7 @@ pub struct IngestArgs {
     /// Mesh files, folders (searched recursively by extension) and CSV manifests.
     #[arg(required = true, value_name = "PATH")]
     pub paths: Vec<PathBuf>,
-    /// The server to send the shapes to [env SHAPESEEK_URL].
+    /// The server to send the shapes to.
     #[arg(
         long,
         env = "SHAPESEEK_URL",

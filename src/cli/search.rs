@@ -21,7 +21,7 @@ pub struct SearchArgs {
     /// Search with a stored shape instead (it is left out of the hits).
     #[arg(long)]
     pub id: Option<String>,
-    /// The server [env SHAPESEEK_URL].
+    /// The server.
     #[arg(long, env = "SHAPESEEK_URL", default_value = "http://127.0.0.1:8080")]
     pub url: String,
     /// Number of hits.
