@@ -4,10 +4,9 @@
 //! document with a stable code (or a closed connection), never a hang.
 
 use serde_json::Value;
-use shapeseek::server::{start, Running, ServerConfig};
+use shapeseek::server::ServerConfig;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
-use std::path::Path;
 use std::time::{Duration, Instant};
 
 /// The tests of this file run one at a time: two of them measure latency and the process's CPU
@@ -17,42 +16,13 @@ fn serial() -> std::sync::MutexGuard<'static, ()> {
     LOCK.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-struct Server {
-    rt: tokio::runtime::Runtime,
-    running: Option<Running>,
-    addr: SocketAddr,
-}
+#[path = "common/in_process.rs"]
+mod in_process;
+use in_process::Server;
 
-impl Server {
-    fn start(data: &Path, tweak: impl FnOnce(&mut ServerConfig)) -> Server {
-        let mut cfg = ServerConfig {
-            data: data.to_path_buf(),
-            addr: "127.0.0.1:0".into(),
-            eigenpairs: 60,
-            workers: 2,
-            shutdown_grace_secs: 5.0,
-            ..Default::default()
-        };
-        tweak(&mut cfg);
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap();
-        let running = rt.block_on(start(cfg)).expect("server starts");
-        let addr = running.addr;
-        Server {
-            rt,
-            running: Some(running),
-            addr,
-        }
-    }
-
-    fn stop(mut self) {
-        let r = self.running.take().unwrap();
-        self.rt.block_on(r.shutdown()).expect("clean shutdown");
-    }
-}
+/// Shutdown grace of these tests' servers: short, since hostile clients may hold connections
+/// open until it runs out.
+const GRACE_SECS: f64 = 5.0;
 
 fn connect(addr: SocketAddr) -> TcpStream {
     let s = TcpStream::connect(addr).expect("connect");
@@ -135,7 +105,7 @@ fn assert_problem(resp: &(u16, Vec<(String, String)>, Vec<u8>), status: u16, cod
 fn silent_unfinished_and_idle_connections_are_closed() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.header_read_timeout_secs = 1.0);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.header_read_timeout_secs = 1.0);
     let t0 = Instant::now();
     let mut silent = connect(s.addr);
     let mut half = connect(s.addr);
@@ -170,7 +140,7 @@ fn silent_unfinished_and_idle_connections_are_closed() {
 fn a_trickling_body_gets_408_problem_json() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.body_read_timeout_secs = 1.0);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.body_read_timeout_secs = 1.0);
     let mut c = connect(s.addr);
     c.write_all(
         b"POST /v1/shapes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\nContent-Length: 1000\r\n\r\nv 0 0 0\n",
@@ -188,7 +158,7 @@ fn a_trickling_body_gets_408_problem_json() {
 fn an_oversized_content_length_is_413_before_100_continue() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let mut c = connect(s.addr);
     c.write_all(
         b"POST /v1/shapes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\nExpect: 100-continue\r\nContent-Length: 99999999999\r\n\r\n",
@@ -212,7 +182,7 @@ fn an_oversized_content_length_is_413_before_100_continue() {
 fn a_chunked_body_is_read_whole_up_to_the_limit_and_refused_past_it() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.max_body_bytes = 4096);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.max_body_bytes = 4096);
     let chunked = |parts: &[&[u8]]| {
         let mut req = b"POST /v1/shapes HTTP/1.1\r\nHost: x\r\nContent-Type: model/off\r\n\
 Transfer-Encoding: chunked\r\n\r\n"
@@ -254,7 +224,7 @@ Transfer-Encoding: chunked\r\n\r\n"
 fn connections_over_the_cap_get_503_with_retry_after() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| {
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
         c.max_connections = 4;
         c.retry_after_secs = 3;
     });
@@ -297,7 +267,7 @@ fn connections_over_the_cap_get_503_with_retry_after() {
 fn errors_of_the_http_layer_are_problem_json() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     // A URI hyper cannot represent (100 KB of query).
     let mut c = connect(s.addr);
     let long = format!(
@@ -332,7 +302,7 @@ fn errors_of_the_http_layer_are_problem_json() {
 fn request_ids_are_bounded_and_sanitised() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let ask = |id: &str| {
         let mut c = connect(s.addr);
         c.write_all(
@@ -364,7 +334,7 @@ fn request_ids_are_bounded_and_sanitised() {
 fn body_bytes_in_flight_are_bounded() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| {
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
         c.max_body_bytes = 1 << 20;
         c.max_inflight_body_bytes = 1 << 20;
         c.retry_after_secs = 4;
@@ -430,7 +400,7 @@ fn limits_that_contradict_each_other_are_refused_at_start() {
 fn the_default_top_k_respects_a_small_max_top_k() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.max_top_k = 3);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.max_top_k = 3);
     // An empty index still answers (no hits); before, every search without `top_k` was a 400
     // when `max_top_k` < 10.
     let mut c = connect(s.addr);
@@ -590,7 +560,7 @@ fn gw_search(id: &str, outer: usize) -> Value {
 fn searches_are_admitted_through_the_bounded_lanes() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| {
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
         c.workers = 1;
         c.queue_capacity = 1;
         c.retry_after_secs = 5;
@@ -636,7 +606,7 @@ fn searches_are_admitted_through_the_bounded_lanes() {
 fn abandoned_searches_stop_their_work() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| {
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
         c.request_timeout_secs = 1.0;
         c.retry_after_secs = 2;
     });
@@ -720,7 +690,7 @@ fn abandoned_searches_stop_their_work() {
 fn cheap_searches_keep_their_latency_under_an_overload_mix() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| {
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
         c.request_timeout_secs = 6.0;
         c.queue_capacity = 6;
         c.retry_after_secs = 1;
@@ -849,7 +819,7 @@ fn padding_is_not_stored() {
     padded.extend(std::iter::repeat_n(b' ', 4 << 20));
     padded.extend_from_slice(&gltf[end..]);
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let r = request(s.addr, "POST", "/v1/shapes", "model/gltf+json", &padded);
     assert_eq!(r.0, 201, "{:?}", String::from_utf8_lossy(&r.2));
     let v = json_of(&r);
@@ -881,7 +851,9 @@ fn padding_is_not_stored() {
     s.stop();
     // Policy `refuse`: 413 with its own code.
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.oversized_original = "refuse".into());
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
+        c.oversized_original = "refuse".into()
+    });
     let r = request(s.addr, "POST", "/v1/shapes", "model/gltf+json", &padded);
     assert_problem(&r, 413, "limit.stored_bytes");
     s.stop();
@@ -894,7 +866,7 @@ fn padding_is_not_stored() {
 fn upload_search_options_are_checked_before_the_analysis() {
     let _serial = serial();
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let query = br#"{"rerank": [{"stage": "spectral_gw", "shortlist": 100000}]}"#;
     let boundary = "b0undary";
     let mut body = Vec::new();

@@ -7,7 +7,7 @@ use shapeseek::mesh::generate::{bumpy_sphere, bumpy_torus, icosphere, rectangle,
 use shapeseek::mesh::read::Format;
 use shapeseek::mesh::write::write_mesh;
 use shapeseek::mesh::Mesh;
-use shapeseek::server::{start, Running, ServerConfig};
+use shapeseek::server::ServerConfig;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::Path;
@@ -16,9 +16,12 @@ use std::time::{Duration, Instant};
 #[path = "common/multipart.rs"]
 mod multipart;
 use multipart::multipart;
+#[path = "common/in_process.rs"]
+mod in_process;
+use in_process::Server;
 
 /// Eigenpairs per shape in these tests (small meshes, fast CI).
-const K: usize = 60;
+const K: usize = in_process::EIGENPAIRS;
 
 // ---------------------------------------------------------------- HTTP client
 
@@ -145,42 +148,9 @@ fn post_json(addr: SocketAddr, path: &str, v: &Value) -> Resp {
 
 // ---------------------------------------------------------------- server and meshes
 
-struct Server {
-    rt: tokio::runtime::Runtime,
-    running: Option<Running>,
-    addr: SocketAddr,
-}
-
-impl Server {
-    fn start(data: &Path, tweak: impl FnOnce(&mut ServerConfig)) -> Server {
-        let mut cfg = ServerConfig {
-            data: data.to_path_buf(),
-            addr: "127.0.0.1:0".into(),
-            eigenpairs: K,
-            workers: 2,
-            shutdown_grace_secs: 20.0,
-            ..Default::default()
-        };
-        tweak(&mut cfg);
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap();
-        let running = rt.block_on(start(cfg)).expect("server starts");
-        let addr = running.addr;
-        Server {
-            rt,
-            running: Some(running),
-            addr,
-        }
-    }
-
-    fn stop(mut self) {
-        let r = self.running.take().unwrap();
-        self.rt.block_on(r.shutdown()).expect("clean shutdown");
-    }
-}
+/// Shutdown grace of these tests' servers: long enough for an in-flight analysis to finish on a
+/// loaded machine.
+const GRACE_SECS: f64 = 20.0;
 
 fn bytes_of(mesh: &Mesh, format: Format) -> Vec<u8> {
     let mut out = Vec::new();
@@ -269,7 +239,7 @@ fn ingest_corpus(addr: SocketAddr) -> Vec<(String, &'static str, String, Vec<u8>
 #[test]
 fn ingest_every_format_read_back_list_delete() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let a = s.addr;
     assert_eq!(get(a, "/healthz").status, 200);
     assert_eq!(get(a, "/readyz").status, 200);
@@ -411,7 +381,7 @@ fn ingest_every_format_read_back_list_delete() {
 #[test]
 fn search_by_id_and_by_upload_finds_the_same_class() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let a = s.addr;
     let shapes = ingest_corpus(a);
     let class_of = |id: &str| shapes.iter().find(|s| s.0 == id).unwrap().1;
@@ -563,7 +533,7 @@ fn ranking_equals_library_ranking() {
     use shapeseek::signature::Signature;
 
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let a = s.addr;
     let shapes = ingest_corpus(a);
     let cfg = default_config();
@@ -702,7 +672,7 @@ fn ranking_equals_library_ranking() {
 fn spectral_gw_stage_equals_library_scores() {
     use shapeseek::rerank::{compute_payload, gw_score, GwOptions, GwPayload, PayloadSpec};
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let a = s.addr;
     let shapes = ingest_corpus(a);
     let mut base = shapeseek::spectrum::AnalyzeOptions::default();
@@ -841,7 +811,7 @@ fn spectral_gw_stage_equals_library_scores() {
 #[test]
 fn concurrent_ingest_and_search() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.queue_capacity = 64);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.queue_capacity = 64);
     let a = s.addr;
     let seed = ingest(
         a,
@@ -899,7 +869,7 @@ fn concurrent_ingest_and_search() {
 #[test]
 fn restart_keeps_shapes_and_calibration() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let shapes = ingest_corpus(s.addr);
     let before = get(s.addr, "/v1/index").json();
     let e = migrate(dir.path()).unwrap_err().to_string();
@@ -913,7 +883,7 @@ fn restart_keeps_shapes_and_calibration() {
         .clone();
     s.stop();
 
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let a = s.addr;
     let after = get(a, "/v1/index").json();
     assert_eq!(after["shapes"], 9);
@@ -984,7 +954,7 @@ fn a_calibration_with_another_window_percentile_is_recomputed_at_start() {
         }
     }
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let shapes = ingest_corpus(s.addr);
     let before = get(s.addr, "/v1/index").json();
     s.stop();
@@ -1003,7 +973,7 @@ fn a_calibration_with_another_window_percentile_is_recomputed_at_start() {
             .set_calibration(&serde_json::to_vec(&doc).unwrap())
             .unwrap();
     }
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let after = get(s.addr, "/v1/index").json();
     assert_eq!(after["shapes"], 9);
     assert!(
@@ -1035,7 +1005,7 @@ fn calibration_above_the_sample_size_uses_the_smallest_content_hashes() {
         c.calibration_sample = 4;
         c.recalibrate_fraction = 0.0;
     };
-    let s = Server::start(dir.path(), sampled);
+    let s = Server::start(dir.path(), GRACE_SECS, sampled);
     let shapes = ingest_corpus(s.addr);
     let info = get(s.addr, "/v1/index").json();
     assert_eq!(info["calibrated_on"], 9, "{info}");
@@ -1059,7 +1029,7 @@ fn calibration_above_the_sample_size_uses_the_smallest_content_hashes() {
     // A server holding only the members calibrates on all of them: the same windows, so the
     // same first-stage scores between members, bit for bit.
     let only = tempfile::tempdir().unwrap();
-    let b = Server::start(only.path(), |c| c.recalibrate_fraction = 0.0);
+    let b = Server::start(only.path(), GRACE_SECS, |c| c.recalibrate_fraction = 0.0);
     let mut probe_b = String::new();
     for &i in &members {
         let (_, class, name, bytes) = &shapes[i];
@@ -1085,14 +1055,14 @@ fn calibration_above_the_sample_size_uses_the_smallest_content_hashes() {
     b.stop();
 
     // Restart under the stored calibration: the same scores (shapes encoded as they are read).
-    let s = Server::start(dir.path(), sampled);
+    let s = Server::start(dir.path(), GRACE_SECS, sampled);
     assert_eq!(scan_scores(s.addr, &probe.0, 9), whole);
     let epoch = get(s.addr, "/v1/index").json()["calibration_epoch"].clone();
     s.stop();
 
     // Other eigenpairs: every signature is recomputed at load, then a new calibration is
     // computed on the sample and every shape encoded again from the store.
-    let s = Server::start(dir.path(), |c| {
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
         sampled(c);
         c.eigenpairs = K + 4;
     });
@@ -1115,7 +1085,7 @@ fn calibration_above_the_sample_size_uses_the_smallest_content_hashes() {
 #[test]
 fn bad_input_is_problem_json() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| {
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
         c.max_body_bytes = 200_000;
         c.max_vertices = 500;
     });
@@ -1214,7 +1184,7 @@ fn bad_input_is_problem_json() {
 #[test]
 fn full_queue_answers_503_with_retry_after() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| {
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
         c.workers = 1;
         c.queue_capacity = 0;
         c.retry_after_secs = 7;
@@ -1446,7 +1416,7 @@ fn mini_benchmark_nearest_neighbours() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let a = s.addr;
     let text = std::fs::read_to_string(&manifest).unwrap();
     let mut shapes = Vec::new();
@@ -1564,7 +1534,7 @@ fn config_layers() {
 #[test]
 fn shutdown_finishes_in_flight_ingest() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.eigenpairs = 100);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.eigenpairs = 100);
     let a = s.addr;
     let bytes = bytes_of(&bumpy_sphere(4, 0.05), Format::Ply); // 2562 vertices
     let b2 = bytes.clone();
@@ -1581,7 +1551,7 @@ fn shutdown_finishes_in_flight_ingest() {
     let r = t.join().unwrap();
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let id = r.json()["id"].as_str().unwrap().to_string();
-    let s = Server::start(dir.path(), |c| c.eigenpairs = 100);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.eigenpairs = 100);
     assert_eq!(get(s.addr, &format!("/v1/shapes/{id}")).status, 200);
     s.stop();
 }
@@ -1589,7 +1559,7 @@ fn shutdown_finishes_in_flight_ingest() {
 #[test]
 fn slow_requests_time_out_as_problem_json() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |c| c.request_timeout_secs = 0.001);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.request_timeout_secs = 0.001);
     let bytes = bytes_of(&bumpy_sphere(4, 0.05), Format::Obj);
     ingest(s.addr, "slow", "", &bytes, "model/obj").problem(503, "request.timeout");
     assert_eq!(get(s.addr, "/healthz").status, 200);
@@ -1601,7 +1571,7 @@ fn slow_requests_time_out_as_problem_json() {
 #[test]
 fn stale_signatures_are_recomputed_from_originals() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let r = ingest(
         s.addr,
         "a",
@@ -1612,7 +1582,7 @@ fn stale_signatures_are_recomputed_from_originals() {
     let id = r.json()["id"].as_str().unwrap().to_string();
     let key_before = r.json()["shape"]["spec_key"].clone();
     s.stop();
-    let s = Server::start(dir.path(), |c| c.eigenpairs = K + 10);
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.eigenpairs = K + 10);
     let rec = get(s.addr, &format!("/v1/shapes/{id}")).json();
     assert_ne!(rec["spec_key"], key_before);
     assert_eq!(rec["spec_key"], get(s.addr, "/v1/index").json()["spec_key"]);
@@ -1684,7 +1654,7 @@ fn migrate_backs_up_then_upgrades() {
 #[test]
 fn migrate_from_version_1_computes_payloads() {
     let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let shapes: Vec<String> = [icosphere(2), torus(1.0, 0.35, 20, 10)]
         .iter()
         .enumerate()
@@ -1738,7 +1708,7 @@ fn migrate_from_version_1_computes_payloads() {
         );
     }
     drop(store);
-    let s = Server::start(dir.path(), |_| {});
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
     let v = post_json(
         s.addr,
         "/v1/search",
