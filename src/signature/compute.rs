@@ -116,7 +116,9 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                     )));
                 }
             }
-            ChannelKind::EuclideanD2 { .. } | ChannelKind::Truncated { .. } => {}
+            ChannelKind::EuclideanD2 { .. }
+            | ChannelKind::Truncated { .. }
+            | ChannelKind::HeatQuantiles { .. } => {}
         }
     }
     let l2_samples = match spec.quadrature {
@@ -258,6 +260,18 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
                         .map(|&i| weight * sp.eigenvalues[i])
                         .collect(),
                 ),
+                ChannelKind::HeatQuantiles {
+                    ts,
+                    quantiles,
+                    weight,
+                } => ChannelValues::Vector(heat_quantiles(
+                    sp.eigenvectors.as_ref(),
+                    &sp.eigenvalues,
+                    &sp.mass,
+                    ts,
+                    *quantiles,
+                    *weight,
+                )),
                 ChannelKind::Truncated { .. } => {
                     return Err(Error::InvalidArgument("nested truncated channel".into()))
                 }
@@ -339,4 +353,68 @@ fn spectral_channel(
         }
     };
     ChannelValues::Distribution(fine.sketch(ctx.q))
+}
+
+/// The values of a [`ChannelKind::HeatQuantiles`] channel: per time, the area-weighted quantiles
+/// of `log(A h(x, t) / Σ_k exp(−λ_k t))` at `(i + ½) / q`, times `weight / q`.
+///
+/// `h(x, t) = Σ_k exp(−λ_k t) φ_k(x)²` over every eigenpair of the analysis (the zero mode
+/// included; eigenvalues below 0 by rounding count as 0). With mass-orthonormal `φ`,
+/// `Σ_x m_x h(x, t) = Σ_k exp(−λ_k t)`, so the ratio has area-weighted mean 1. Quantiles
+/// interpolate linearly between the vertices' mid-mass cumulative positions (`m_x / 2` into
+/// each vertex's share) and are clamped to the smallest and largest value at the ends.
+pub(crate) fn heat_quantiles(
+    phi: faer::MatRef<'_, f64>,
+    eigenvalues: &[f64],
+    mass: &[f64],
+    ts: &[f64],
+    q: usize,
+    weight: f64,
+) -> Vec<f64> {
+    let n = phi.nrows();
+    let area: f64 = mass.iter().sum();
+    let mut out = Vec::with_capacity(ts.len() * q);
+    for &t in ts {
+        let e: Vec<f64> = eigenvalues
+            .iter()
+            .map(|&l| (-l.max(0.0) * t).exp())
+            .collect();
+        let trace: f64 = e.iter().sum();
+        let mut v: Vec<(f64, f64)> = (0..n)
+            .map(|x| {
+                let h: f64 = e
+                    .iter()
+                    .enumerate()
+                    .map(|(k, ek)| ek * phi[(x, k)] * phi[(x, k)])
+                    .sum();
+                ((area * h / trace).max(1e-300).ln(), mass[x])
+            })
+            .collect();
+        v.sort_by(|a, b| a.0.total_cmp(&b.0));
+        // Mid-mass cumulative position of each vertex, as a fraction of the area.
+        let mut pos = Vec::with_capacity(n);
+        let mut acc = 0.0;
+        for &(_, m) in &v {
+            pos.push((acc + 0.5 * m) / area);
+            acc += m;
+        }
+        let mut j = 0;
+        for i in 0..q {
+            let u = (i as f64 + 0.5) / q as f64;
+            while j + 1 < n && pos[j + 1] <= u {
+                j += 1;
+            }
+            let value = if u <= pos[0] {
+                v[0].0
+            } else if j + 1 >= n {
+                v[n - 1].0
+            } else {
+                let (a, b) = (pos[j], pos[j + 1]);
+                let f = if b > a { (u - a) / (b - a) } else { 0.0 };
+                v[j].0 + f * (v[j + 1].0 - v[j].0)
+            };
+            out.push(weight / q as f64 * value);
+        }
+    }
+    out
 }

@@ -161,6 +161,24 @@ pub enum ChannelKind {
         #[serde(default = "unit_weight", skip_serializing_if = "is_unit_weight")]
         weight: f64,
     },
+    /// The distribution of the heat kernel signature over the surface (Sun, Ovsjanikov, Guibas
+    /// 2009: `h(x, t) = Σ_k exp(−λ_k t) φ_k(x)²`, the diagonal of the kernel of eq. 7), as a
+    /// vector: per time `t` of `ts`, the `quantiles` area-weighted quantiles, at `(i + ½) /
+    /// quantiles`, of `log(A h(x, t) / Σ_k exp(−λ_k t))` (`A` the area: the ratio has area-weighted
+    /// mean 1, so a uniform scaling does not move it), each multiplied by `weight / quantiles`.
+    /// Its L1 dissimilarity is then `weight` times the sum over the times of the 1-Wasserstein
+    /// distances of the two distributions (evaluated by the quantiles' mean absolute difference).
+    /// A pointwise quantity, not a pair distance: at small times it reflects how much of the
+    /// surface lies on thin parts (limbs, their girth), which the distance distributions of
+    /// the other channels summarise poorly (`docs/quality.md` §35).
+    HeatQuantiles {
+        /// Diffusion times.
+        ts: Vec<f64>,
+        /// Quantiles per time (1 … 1024).
+        quantiles: usize,
+        /// Factor applied to every value (the channel's weight in a sum with other channels).
+        weight: f64,
+    },
     /// Scale-invariant heat kernel of eq. 21, `k̂ = F⁻¹|F(∂_τ log k_τ)|` on a log-time grid
     /// read at one lag, under `norm` over area-normalised quadrature nodes
     /// ([`crate::signature::scale_invariant`]): the distribution is unchanged by a uniform
@@ -287,6 +305,18 @@ impl ChannelSpec {
         }
     }
 
+    /// The heat kernel signature's distribution at times `ts` as `quantiles` quantiles each,
+    /// weighted by `weight` ([`ChannelKind::HeatQuantiles`]).
+    pub fn heat_quantiles(ts: &[f64], quantiles: usize, weight: f64) -> Self {
+        Self {
+            kind: ChannelKind::HeatQuantiles {
+                ts: ts.to_vec(),
+                quantiles,
+                weight,
+            },
+        }
+    }
+
     /// ShapeDNA with `count` eigenvalues.
     pub fn shape_dna(count: usize) -> Self {
         Self::weighted_shape_dna(count, 1.0)
@@ -354,6 +384,11 @@ impl ChannelSpec {
                 format!("shapedna[{count}]")
             }
             ChannelKind::ShapeDna { count, weight } => format!("shapedna[{count}][w={weight}]"),
+            ChannelKind::HeatQuantiles {
+                ts,
+                quantiles,
+                weight,
+            } => format!("hks-q[t={}][n={quantiles}][w={weight}]", fmt_ts(ts)),
             ChannelKind::Truncated { channel, radius } => {
                 let inner = ChannelSpec {
                     kind: (**channel).clone(),
@@ -624,7 +659,9 @@ pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
             if !(radius.is_finite() && *radius > 0.0)
                 || matches!(
                     **channel,
-                    ChannelKind::Truncated { .. } | ChannelKind::ShapeDna { .. }
+                    ChannelKind::Truncated { .. }
+                        | ChannelKind::ShapeDna { .. }
+                        | ChannelKind::HeatQuantiles { .. }
                 )
             {
                 return bad(format!("invalid channel {}", c.name()));
@@ -663,6 +700,17 @@ pub(crate) fn validate_spec(spec: &SignatureSpec) -> Result<()> {
             ChannelKind::EuclideanD2 { samples } => *samples >= 2 && *samples <= 100_000,
             ChannelKind::ShapeDna { count, weight } => {
                 *count >= 1 && weight.is_finite() && *weight > 0.0
+            }
+            ChannelKind::HeatQuantiles {
+                ts,
+                quantiles,
+                weight,
+            } => {
+                !ts.is_empty()
+                    && ts.iter().all(|&t| check_t(t))
+                    && (1..=1024).contains(quantiles)
+                    && weight.is_finite()
+                    && *weight > 0.0
             }
             ChannelKind::Truncated { .. } => false,
         };

@@ -964,3 +964,89 @@ fn smoothing_is_a_preparation_step_of_both_versions() {
     let e = super::spec::validate_spec(&bad).unwrap_err().to_string();
     assert!(e.contains("smooth: mu"), "{e}");
 }
+
+/// The heat kernel signature's quantiles on a hand-made spectrum: two vertices of equal mass,
+/// one eigenpair (the zero mode) with `φ² = ¼, ¾`: the ratios `A h / trace` are ½ and 3/2, at
+/// mid-mass positions ¼ and ¾; quantiles between them interpolate, beyond them clamp; every
+/// value is scaled by `weight / q`.
+#[test]
+fn heat_quantiles_on_a_two_vertex_spectrum() {
+    let phi = Mat::from_fn(2, 1, |i, _| if i == 0 { 0.5 } else { 0.75f64.sqrt() });
+    let mass = [1.0, 1.0];
+    let (lo, hi) = (0.5f64.ln(), 1.5f64.ln());
+    let v = compute::heat_quantiles(phi.as_ref(), &[0.0], &mass, &[0.01], 4, 1.0);
+    let expect = [lo, lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), hi];
+    for (a, b) in v.iter().zip(expect) {
+        assert!((a - b / 4.0).abs() < 1e-12, "{v:?}");
+    }
+    // Two times, q = 2, weight 3: the same two values per time (the zero mode does not decay).
+    let v = compute::heat_quantiles(phi.as_ref(), &[0.0], &mass, &[0.01, 0.1], 2, 3.0);
+    for (a, b) in v.iter().zip([lo, hi, lo, hi]) {
+        assert!((a - 1.5 * b).abs() < 1e-12, "{v:?}");
+    }
+}
+
+/// On a sphere every point is alike, so the heat kernel signature is the same everywhere and
+/// every quantile of `log(A h / trace)` is close to 0 (the icosphere is not exactly uniform);
+/// the channel is unchanged by a uniform scaling of the input (unit-area preparation); its
+/// quantiles are non-decreasing per time; an invalid channel is refused.
+#[test]
+fn heat_quantiles_of_a_sphere_and_a_scaled_shape() {
+    let ts = [0.005, 0.01, 0.05];
+    let spec = SignatureSpec::with_channels(vec![ChannelSpec::heat_quantiles(&ts, 16, 1.0)]);
+    assert_eq!(
+        spec.channels[0].name(),
+        "hks-q[t=0.005,0.01,0.05][n=16][w=1]"
+    );
+    let sphere =
+        compute_signature(&analysis_of(&generate::icosphere(4), 80, true), &spec).expect("sphere");
+    let ChannelValues::Vector(v) = &sphere.channels[0].values else {
+        panic!("a vector channel")
+    };
+    assert_eq!(v.len(), 48);
+    // Values are log ratios / 16: |log ratio| < 0.05 on the icosphere.
+    assert!(v.iter().all(|x| (16.0 * x).abs() < 0.05), "{v:?}");
+
+    let shape = generate::bumpy_sphere(3, 0.2);
+    let mut big = shape.clone();
+    for p in big.vertices.iter_mut() {
+        for c in p.iter_mut() {
+            *c *= 3.7;
+        }
+    }
+    let a_analysis = analysis_of(&shape, 80, true);
+    let a = compute_signature(&a_analysis, &spec).expect("shape");
+    let b = compute_signature(&analysis_of(&big, 80, true), &spec).expect("scaled");
+    let (ChannelValues::Vector(x), ChannelValues::Vector(y)) =
+        (&a.channels[0].values, &b.channels[0].values)
+    else {
+        panic!("vector channels")
+    };
+    for (p, q) in x.iter().zip(y) {
+        assert!((p - q).abs() < 1e-6, "{p} vs {q}");
+    }
+    // A bumpy shape is not uniform: its spread at the smallest time is far larger than the
+    // sphere's.
+    assert!(
+        x[15] - x[0] > 5.0 * (v[15] - v[0]),
+        "bumpy {} vs sphere {}",
+        x[15] - x[0],
+        v[15] - v[0]
+    );
+    for block in x.chunks(16) {
+        assert!(block.windows(2).all(|w| w[0] <= w[1]), "{block:?}");
+    }
+    for bad in [
+        ChannelSpec::heat_quantiles(&[], 16, 1.0),
+        ChannelSpec::heat_quantiles(&[0.01], 0, 1.0),
+        ChannelSpec::heat_quantiles(&[0.01], 16, 0.0),
+        ChannelSpec::heat_quantiles(&[-0.01], 16, 1.0),
+    ] {
+        let s = SignatureSpec::with_channels(vec![bad]);
+        assert!(
+            compute_signature(&a_analysis, &s).is_err(),
+            "{:?}",
+            s.channels
+        );
+    }
+}
