@@ -1,7 +1,7 @@
 //! Per-vertex heat kernel signatures of every shape of a manifest, prepared and analysed as the
 //! default spec prepares its first version (smoothing, capping, handle cutting, unit area), for
-//! offline partial-matching prototypes (`scripts/analysis/hks_chamfer.py`, `docs/quality.md`
-//! §33):
+//! offline prototypes (`scripts/analysis/hks_chamfer.py`, partial matching, `docs/quality.md`
+//! §33; `scripts/analysis/hks_distribution.py`, the signature's distribution, §35):
 //!
 //! ```text
 //! cargo run --release --example hks_dump -- MANIFEST OUT_DIR
