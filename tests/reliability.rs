@@ -64,19 +64,7 @@ fn read_response(s: &mut TcpStream) -> (u16, Vec<(String, String)>, Vec<u8>) {
         }
     }
     let head = String::from_utf8_lossy(&raw).to_string();
-    let mut lines = head.split("\r\n");
-    let status: u16 = lines
-        .next()
-        .unwrap()
-        .split(' ')
-        .nth(1)
-        .unwrap()
-        .parse()
-        .unwrap();
-    let headers: Vec<(String, String)> = lines
-        .filter_map(|l| l.split_once(':'))
-        .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
-        .collect();
+    let (status, headers) = in_process::parse_head(&head);
     let len: usize = headers
         .iter()
         .find(|(k, _)| k == "content-length")

@@ -162,10 +162,10 @@ pub enum ChannelKind {
         weight: f64,
     },
     /// The distribution of the heat kernel signature over the surface (Sun, Ovsjanikov, Guibas
-    /// 2009: `h(x, t) = Σ_k exp(−λ_k t) φ_k(x)²`, the diagonal of the kernel of eq. 7), as a
-    /// vector: per time `t` of `ts`, the `quantiles` area-weighted quantiles, at `(i + ½) /
-    /// quantiles`, of `log(A h(x, t) / Σ_k exp(−λ_k t))` (`A` the area: the ratio has area-weighted
-    /// mean 1, so a uniform scaling does not move it), each multiplied by `weight / quantiles`.
+    /// 2009: `h(x, t) = Σ_k exp(−λ_k t) φ_k(x)²`, the diagonal of the paper's heat kernel
+    /// `h_t(x, y)` of §2.2), as a vector: per time `t` of `ts`, the `quantiles` area-weighted
+    /// quantiles, at `(i + ½) / quantiles`, of `log(A h(x, t) / Σ_k exp(−λ_k t))` (`A` the
+    /// area: the ratio has area-weighted mean 1), each multiplied by `weight / quantiles`.
     /// Its L1 dissimilarity is then `weight` times the sum over the times of the 1-Wasserstein
     /// distances of the two distributions (evaluated by the quantiles' mean absolute difference).
     /// A pointwise quantity, not a pair distance: at small times it reflects how much of the

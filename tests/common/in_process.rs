@@ -1,5 +1,5 @@
-//! An in-process `shapeseek serve` on a free port of 127.0.0.1, for the HTTP tests
-//! (`tests/server.rs`, `tests/reliability.rs`). Include with
+//! An in-process `shapeseek serve` on a free port of 127.0.0.1 and a response-head parser, for
+//! the HTTP tests (`tests/server.rs`, `tests/reliability.rs`). Include with
 //! `#[path = "common/in_process.rs"] mod in_process;`.
 
 use shapeseek::server::{start, Running, ServerConfig};
@@ -50,4 +50,20 @@ impl Server {
         let r = self.running.take().unwrap();
         self.rt.block_on(r.shutdown()).expect("clean shutdown");
     }
+}
+
+/// The status and the headers (names in lower case, values trimmed) of an HTTP/1.1 response
+/// head, given without its final blank line.
+pub fn parse_head(head: &str) -> (u16, Vec<(String, String)>) {
+    let mut lines = head.split("\r\n");
+    let status: u16 = lines
+        .next()
+        .and_then(|l| l.split(' ').nth(1))
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no status line in {head:?}"));
+    let headers = lines
+        .filter_map(|l| l.split_once(':'))
+        .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
+        .collect();
+    (status, headers)
 }

@@ -1,7 +1,6 @@
 //! The previous, hand-written Wavefront OBJ reader, compiled for tests only: `obj` must read every
 //! file to the same mesh (see its tests).
 //!
-//!
 //! Hand-written rather than through `tobj`, on purpose: `tobj` re-indexes the positions of each
 //! model/group separately (so a body split into groups comes out disconnected, which breaks the
 //! Laplacian, and the vertex order changes), stores f32 unless a crate feature is switched on
@@ -23,24 +22,6 @@ const F: &str = "OBJ";
 
 fn err(line: usize, msg: impl Into<String>) -> Error {
     Error::parse(F, Some(Location::Line(line)), msg)
-}
-
-/// True if the first statement of the text (ignoring blank and `#` lines) is an OBJ keyword.
-#[allow(dead_code)]
-pub(crate) fn looks_like_obj(head: &[u8]) -> bool {
-    const KEYWORDS: [&str; 12] = [
-        "v", "vt", "vn", "vp", "f", "o", "g", "s", "l", "p", "mtllib", "usemtl",
-    ];
-    let text = String::from_utf8_lossy(head);
-    for line in text.lines() {
-        let t = line.trim();
-        if t.is_empty() || t.starts_with('#') {
-            continue;
-        }
-        let kw = t.split_ascii_whitespace().next().unwrap_or("");
-        return KEYWORDS.contains(&kw) && t.len() > kw.len();
-    }
-    false
 }
 
 pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
