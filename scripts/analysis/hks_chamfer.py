@@ -25,13 +25,20 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from matrix_ap import TR, ap_all, read_matrix  # noqa: E402
 
 
-def load(hks, index, times, sid, sel, rng, nq=200, nt=1000):
+def read_dump(hks, index, times, sid):
+    """One shape of an hks_dump folder: h(x, t) (n x len(times)), the vertex masses, and the
+    heat trace sum_k exp(-lambda_k t) per time."""
     n = index["shapes"][sid]["n"]
     ev = np.maximum(np.array(index["shapes"][sid]["eigenvalues"]), 0)
     a = np.fromfile(os.path.join(hks, f"{sid}.f32"), dtype="<f4")
     h = a[: n * len(times)].reshape(n, len(times)).astype(float)
     m = a[n * len(times):].astype(float)
-    trace = np.exp(-np.outer(times, ev)).sum(1)
+    return h, m, np.exp(-np.outer(times, ev)).sum(1)
+
+
+def load(hks, index, times, sid, sel, rng, nq=200, nt=1000):
+    h, m, trace = read_dump(hks, index, times, sid)
+    n = len(m)
     d = np.log(np.maximum(h / trace, 1e-12))[:, sel]
     p = m / m.sum()
     return d[rng.choice(n, nq, p=p)], d[rng.choice(n, nt, p=p)]

@@ -30,18 +30,14 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from hks_chamfer import read_dump  # noqa: E402
 from matrix_ap import TR, ap_all, read_matrix  # noqa: E402
 from neighbourhood_rerank import reciprocal  # noqa: E402
 
 
 def ratios(hks, index, times, sid, sel):
     """(r at the chosen times, n x len(sel)) and the vertex masses normalised to sum 1."""
-    n = index["shapes"][sid]["n"]
-    ev = np.maximum(np.array(index["shapes"][sid]["eigenvalues"]), 0)
-    a = np.fromfile(os.path.join(hks, f"{sid}.f32"), dtype="<f4")
-    h = a[: n * len(times)].reshape(n, len(times)).astype(float)
-    m = a[n * len(times):].astype(float)
-    trace = np.exp(-np.outer(times, ev)).sum(1)
+    h, m, trace = read_dump(hks, index, times, sid)
     return (h / trace * m.sum())[:, sel], m / m.sum()
 
 
