@@ -12,6 +12,7 @@
 //! vertex masses) and `OUT_DIR/index.json` (`times`, and per id `n` and the eigenvalues).
 use rayon::prelude::*;
 use shapeseek::mesh::{read_path, ReadLimits};
+use shapeseek::signature::kernels::heat_kernel_signature;
 use shapeseek::spectrum::{analyze, AnalyzeOptions};
 use std::path::Path;
 
@@ -63,25 +64,14 @@ fn run() -> Res<()> {
             let mesh = read_path(base.join(p), &ReadLimits::default())?;
             let sp = analyze(&mesh, &opts)?.spectrum;
             let n = sp.eigenvectors.nrows();
-            // exp(−λ_j t) once per shape, not per vertex.
-            let decay: Vec<Vec<f64>> = times
+            let per_time: Vec<Vec<f64>> = times
                 .iter()
-                .map(|&t| {
-                    sp.eigenvalues
-                        .iter()
-                        .map(|l| (-l.max(0.0) * t).exp())
-                        .collect()
-                })
+                .map(|&t| heat_kernel_signature(sp.eigenvectors.as_ref(), &sp.eigenvalues, t))
                 .collect();
             let mut bytes = Vec::with_capacity(4 * n * (TIMES + 1));
             for i in 0..n {
-                for w in &decay {
-                    let h: f64 = w
-                        .iter()
-                        .enumerate()
-                        .map(|(j, e)| e * sp.eigenvectors[(i, j)].powi(2))
-                        .sum();
-                    bytes.extend_from_slice(&(h as f32).to_le_bytes());
+                for h in &per_time {
+                    bytes.extend_from_slice(&(h[i] as f32).to_le_bytes());
                 }
             }
             for &m in &sp.mass {

@@ -2,7 +2,9 @@
 
 use super::baselines::{d2_sketch, geodesic_sketch};
 use super::distributions::{truncate_sketch, QuantileSketch};
-use super::kernels::{heat_weights, l2_pairs, lp_pairs, transfer_weights, PairMode};
+use super::kernels::{
+    heat_kernel_signature, heat_weights, l2_pairs, lp_pairs, transfer_weights, PairMode,
+};
 use super::sampling::{farthest_points, EdgeGraph, NearField, Quadrature};
 use super::scale_invariant::{si_kernel_rows, si_pairs, tau_grid};
 use super::spec::{validate_spec, ChannelKind, Norm, PairQuadrature, SignatureSpec};
@@ -358,8 +360,8 @@ fn spectral_channel(
 /// The values of a [`ChannelKind::HeatQuantiles`] channel: per time, the area-weighted quantiles
 /// of `log(A h(x, t) / Σ_k exp(−λ_k t))` at `(i + ½) / q`, times `weight / q`.
 ///
-/// `h(x, t) = Σ_k exp(−λ_k t) φ_k(x)²` over every eigenpair of the analysis (the zero mode
-/// included; eigenvalues below 0 by rounding count as 0). With mass-orthonormal `φ`,
+/// `h(x, t)` is [`heat_kernel_signature`] over every eigenpair of the analysis. With
+/// mass-orthonormal `φ`,
 /// `Σ_x m_x h(x, t) = Σ_k exp(−λ_k t)`, so the ratio has area-weighted mean 1. Quantiles
 /// interpolate linearly between the vertices' mid-mass cumulative positions (`m_x / 2` into
 /// each vertex's share) and are clamped to the smallest and largest value at the ends.
@@ -375,20 +377,11 @@ pub(crate) fn heat_quantiles(
     let area: f64 = mass.iter().sum();
     let mut out = Vec::with_capacity(ts.len() * q);
     for &t in ts {
-        let e: Vec<f64> = eigenvalues
-            .iter()
-            .map(|&l| (-l.max(0.0) * t).exp())
-            .collect();
-        let trace: f64 = e.iter().sum();
-        let mut v: Vec<(f64, f64)> = (0..n)
-            .map(|x| {
-                let h: f64 = e
-                    .iter()
-                    .enumerate()
-                    .map(|(k, ek)| ek * phi[(x, k)] * phi[(x, k)])
-                    .sum();
-                ((area * h / trace).max(1e-300).ln(), mass[x])
-            })
+        let trace: f64 = eigenvalues.iter().map(|l| (-l.max(0.0) * t).exp()).sum();
+        let mut v: Vec<(f64, f64)> = heat_kernel_signature(phi, eigenvalues, t)
+            .into_iter()
+            .zip(mass)
+            .map(|(h, &m)| ((area * h / trace).max(1e-300).ln(), m))
             .collect();
         v.sort_by(|a, b| a.0.total_cmp(&b.0));
         // Mid-mass cumulative position of each vertex, as a fraction of the area.

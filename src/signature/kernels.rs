@@ -8,6 +8,27 @@ use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, MatRef, Par};
 use rayon::prelude::*;
 
+/// The heat kernel signature `h(x, t) = Σ_k exp(−λ_k t) φ_k(x)²` of every vertex (the diagonal
+/// of the paper's heat kernel, §2.2) over every eigenpair given, the zero mode included;
+/// eigenvalues below 0 by rounding count as 0. Used by
+/// [`ChannelKind::HeatQuantiles`](crate::signature::ChannelKind::HeatQuantiles) and by
+/// `examples/hks_dump`.
+pub fn heat_kernel_signature(phi: MatRef<'_, f64>, eigenvalues: &[f64], t: f64) -> Vec<f64> {
+    let decay: Vec<f64> = eigenvalues
+        .iter()
+        .map(|l| (-l.max(0.0) * t).exp())
+        .collect();
+    (0..phi.nrows())
+        .map(|x| {
+            decay
+                .iter()
+                .enumerate()
+                .map(|(k, e)| e * phi[(x, k)].powi(2))
+                .sum()
+        })
+        .collect()
+}
+
 /// `K(λ_i)` of `kernel` for every eigenvalue, 0 on zero modes.
 pub fn transfer_weights(kernel: &Kernel, eigenvalues: &[f64], zero_tol: f64) -> Vec<f64> {
     eigenvalues
