@@ -20,7 +20,10 @@ r = A h(x, t) / sum_k exp(-lambda_k t) (mean 1). Two shapes are compared, summed
 
 Each mix is re-ranked by the reciprocal stage over the whole corpus
 (neighbourhood_rerank.reciprocal, mean over k = 8, 16, 32); then the leave-one-class-out choice
-among the mixes (held-in = the other classes' queries) and the held-out figure per fold.
+among the mixes and the held-out figure per fold. Held-in is by default the other classes'
+queries ranked over the whole corpus, the held-out class's shapes among their candidates;
+`--held-in restricted` removes those shapes and re-runs the stage, as `eval --protocol loco`
+does (§35: that difference decides whether the david and victoria folds choose the channel).
 """
 import argparse
 import json
@@ -51,6 +54,10 @@ def main():
     ap.add_argument("matrices")
     ap.add_argument("--times", default="0,1,2,3")
     ap.add_argument("--form", choices=["cdf", "quantiles", "histogram"], default="cdf")
+    ap.add_argument("--held-in", choices=["queries", "restricted"], default="queries",
+                    help="queries: the other classes' queries over the whole corpus (§35's "
+                         "figures); restricted: queries and candidates of the other classes "
+                         "only, the stage re-run on them, as `eval --protocol loco` does")
     args = ap.parse_args()
     index = json.load(open(os.path.join(args.hks, "index.json")))
     times = np.array(index["times"])
@@ -96,9 +103,12 @@ def main():
         mixes = {"none": D}
         for k in range(1, len(sel) + 1):
             mixes[f"first {k} time(s)"] = D + sum(per_time[:k])
+    def staged(C):
+        return np.mean([reciprocal(C, k) for k in (8, 16, 32)], axis=0)
+
     res = {}
     for label, C in mixes.items():
-        b = ap_all(np.mean([reciprocal(C, k) for k in (8, 16, 32)], axis=0), cls)
+        b = ap_all(staged(C), cls)
         res[label] = b
         per = " ".join("%5.1f" % (100 * b[tr == t].mean()) for t in TR)
         print("%-16s + stage: %s | All %.2f" % (label, per, 100 * b.mean()), flush=True)
@@ -106,7 +116,12 @@ def main():
     held, fixed, chosen = [], [], []
     for c in sorted(set(cls)):
         inn = cls != c
-        best = max(res, key=lambda k: res[k][inn].mean())
+        if args.held_in == "restricted":
+            sub = np.ix_(inn, inn)
+            score = {k: ap_all(staged(C[sub]), cls[inn]).mean() for k, C in mixes.items()}
+        else:
+            score = {k: res[k][inn].mean() for k in res}
+        best = max(score, key=score.get)
         chosen.append(best)
         held.append(res[best][~inn].mean())
         fixed.append(res[base][~inn].mean())
