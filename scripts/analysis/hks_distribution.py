@@ -23,7 +23,7 @@ Each mix is re-ranked by the reciprocal stage over the whole corpus
 among the mixes and the held-out figure per fold. Held-in is by default the other classes'
 queries ranked over the whole corpus, the held-out class's shapes among their candidates;
 `--held-in restricted` removes those shapes and re-runs the stage, as `eval --protocol loco`
-does (§35: that difference decides whether the david and victoria folds choose the channel).
+does (§35: that difference decides the david fold's choice).
 """
 import argparse
 import json
@@ -103,6 +103,7 @@ def main():
         mixes = {"none": D}
         for k in range(1, len(sel) + 1):
             mixes[f"first {k} time(s)"] = D + sum(per_time[:k])
+
     def staged(C):
         return np.mean([reciprocal(C, k) for k in (8, 16, 32)], axis=0)
 
