@@ -15,7 +15,10 @@
 #       (e.g. '[{"stage":"spectral_gw","shortlist":50}]') the shapes get re-ranking payloads
 #       and every search carries those stages.
 #
-# The temporary index is removed at exit. CARGO_TARGET_DIR is honoured.
+# The server's settings come from the environment as usual (e.g. SHAPESEEK_HEAVY_SHARE=1 gives
+# ingest and GW stages every worker; docs/reliability.md); the first line printed says how many
+# threads the heavy lane has. The temporary index is removed at exit. CARGO_TARGET_DIR is
+# honoured.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 MODE="${1:-}"
@@ -23,7 +26,7 @@ TARGET="${CARGO_TARGET_DIR:-$PWD/target}"
 BIN="$TARGET/release/shapeseek"
 case "$MODE" in
   ingest|search) ;;
-  *) sed -n '2,18p' "$0"; exit 2 ;;
+  *) sed -n '2,21p' "$0"; exit 2 ;;
 esac
 command -v hey >/dev/null || { echo "hey not installed (apt-get install hey)"; exit 1; }
 cargo build --quiet --release --bin shapeseek
@@ -46,7 +49,10 @@ start_server() {
     sleep 0.1
   done
   URL="http://$ADDR"
-  echo "server ready at $URL"
+  echo "server ready at $URL: $(curl -s "$URL/v1/index" | python3 -c '
+import json, sys
+q = json.load(sys.stdin)["queue"]
+print(q["workers"], "workers,", q["heavy_threads"], "of them for analyses and GW stages (heavy_share)")')"
 }
 
 if [ "$MODE" = ingest ]; then
