@@ -16,7 +16,8 @@
 #       and every search carries those stages.
 #
 # The server's settings come from the environment as usual (e.g. SHAPESEEK_HEAVY_SHARE=1 gives
-# ingest and GW stages every worker; docs/reliability.md); the first line printed says how many
+# ingest and GW stages every worker, SHAPESEEK_HEAVY_BORROW=false keeps them on the heavy lane's
+# threads even on an idle server; docs/reliability.md); the first line printed says how many
 # threads the heavy lane has. The temporary index is removed at exit. CARGO_TARGET_DIR is
 # honoured.
 set -euo pipefail
@@ -26,7 +27,7 @@ TARGET="${CARGO_TARGET_DIR:-$PWD/target}"
 BIN="$TARGET/release/shapeseek"
 case "$MODE" in
   ingest|search) ;;
-  *) sed -n '2,21p' "$0"; exit 2 ;;
+  *) sed -n '2,22p' "$0"; exit 2 ;;
 esac
 command -v hey >/dev/null || { echo "hey not installed (apt-get install hey)"; exit 1; }
 cargo build --quiet --release --bin shapeseek
@@ -52,7 +53,8 @@ start_server() {
   echo "server ready at $URL: $(curl -s "$URL/v1/index" | python3 -c '
 import json, sys
 q = json.load(sys.stdin)["queue"]
-print(q["workers"], "workers,", q["heavy_threads"], "of them for analyses and GW stages (heavy_share)")')"
+print(q["workers"], "workers,", q["heavy_threads"], "of them for analyses and GW stages (heavy_share);",
+      q.get("borrow_threads", q["heavy_threads"]), "for one that starts on an idle server (heavy_borrow)")')"
 }
 
 if [ "$MODE" = ingest ]; then

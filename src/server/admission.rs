@@ -21,6 +21,18 @@
 //! first-come-first-served classes (small and large jobs, see [`LARGE_UNITS`]) served
 //! alternately; a job runs without queueing only when nothing waits.
 //!
+//! **Borrowing an idle server's cores.** With `heavy_share` < 1 a 2-core server would run an
+//! expensive job on one thread even when nothing else runs. So when `heavy_borrow` is set, the
+//! heavy threads are niced (`heavy_nice` > 0, Linux) and there are more workers than heavy
+//! threads, a second pool of `workers` threads at the same nice value exists, and a heavy job
+//! that starts while no other heavy job runs, no cheap job runs or waits and none has finished
+//! for [`BORROW_QUIET`] is run on it (counted in `shapeseek_heavy_jobs_borrowed_total`). The
+//! quiet period keeps a server with a steady stream of cheap searches from borrowing: there a
+//! cheap search would often find both cores taken by niced threads. The choice is made once,
+//! at start: a cheap job that arrives while such a job runs gets its core back from the
+//! scheduler (a niced thread yields to a normal one), not from admission; heavy jobs that
+//! start meanwhile use the narrow pool.
+//!
 //! **Refusal.** A lane whose queue is full refuses at once with 503 `server.busy` and
 //! `Retry-After`; so does the heavy lane when the work already ahead of a job (the units of the
 //! running and queued jobs, worked off at [`HEAVY_UNITS_PER_THREAD`] a second per heavy thread)
@@ -44,6 +56,9 @@ pub const CHEAP_MAX_UNITS: u32 = 8;
 
 /// Units a heavy thread works off per second (1 unit ≈ 10 ms of one core).
 pub const HEAVY_UNITS_PER_THREAD: u32 = 100;
+
+/// How long the cheap lane must have been idle before a heavy job may borrow its cores.
+pub const BORROW_QUIET: Duration = Duration::from_secs(1);
 
 /// An estimated cost, in units of ≈ 10 ms of one core.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
@@ -317,9 +332,17 @@ pub struct Admission {
     cheap: Arc<Lane>,
     heavy: Arc<Lane>,
     heavy_pool: Arc<rayon::ThreadPool>,
+    /// `workers` niced threads for a heavy job that starts on an otherwise idle server.
+    wide_pool: Option<Arc<rayon::ThreadPool>>,
     heavy_threads: usize,
+    borrow_quiet: Duration,
+    /// When the last cheap job finished: milliseconds since `epoch` + 1 (0: none yet).
+    last_cheap_done: Arc<AtomicU64>,
+    epoch: Instant,
     retry_after: u64,
     request_timeout: Duration,
+    /// Heavy jobs run on the wide pool.
+    pub borrowed: Arc<AtomicU64>,
     /// Jobs stopped by their cancellation token.
     pub cancelled: Arc<AtomicU64>,
     /// Work items (GW candidates) skipped by cancelled jobs.
@@ -337,6 +360,12 @@ pub struct AdmissionConfig {
     pub queue_capacity: usize,
     /// Nice value of the heavy threads (Linux; 0 = same priority as the rest).
     pub heavy_nice: i32,
+    /// Run a heavy job that starts on an otherwise idle server on `workers` threads (see the
+    /// module documentation).
+    pub heavy_borrow: bool,
+    /// How long the cheap lane must have been idle before a heavy job borrows
+    /// ([`BORROW_QUIET`] in the server).
+    pub borrow_quiet: Duration,
     /// `Retry-After` seconds of a refusal.
     pub retry_after: u64,
     /// The per-request time limit.
@@ -352,17 +381,31 @@ impl Admission {
             heavy_threads = heavy_threads.min(workers - 1);
         }
         let nice = c.heavy_nice;
-        let heavy_pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(heavy_threads)
-            .thread_name(|i| format!("shapeseek-heavy-{i}"))
-            .start_handler(move |_| lower_priority(nice))
-            .build()
-            .map_err(|e| crate::Error::Io(std::io::Error::other(e.to_string())))?;
+        let pool = |threads: usize, name: &'static str| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .thread_name(move |i| format!("shapeseek-{name}-{i}"))
+                .start_handler(move |_| lower_priority(nice))
+                .build()
+                .map(Arc::new)
+                .map_err(|e| crate::Error::Io(std::io::Error::other(e.to_string())))
+        };
+        let niced = cfg!(target_os = "linux") && nice > 0;
+        let wide_pool = if c.heavy_borrow && niced && workers > heavy_threads {
+            Some(pool(workers, "wide")?)
+        } else {
+            None
+        };
         Ok(Admission {
             cheap: Lane::new("cheap", workers, c.queue_capacity),
             heavy: Lane::new("heavy", heavy_threads, c.queue_capacity),
-            heavy_pool: Arc::new(heavy_pool),
+            heavy_pool: pool(heavy_threads, "heavy")?,
+            wide_pool,
             heavy_threads,
+            borrow_quiet: c.borrow_quiet,
+            last_cheap_done: Arc::new(AtomicU64::new(0)),
+            epoch: Instant::now(),
+            borrowed: Arc::new(AtomicU64::new(0)),
             retry_after: c.retry_after,
             request_timeout: c.request_timeout,
             cancelled: Arc::new(AtomicU64::new(0)),
@@ -373,6 +416,40 @@ impl Admission {
     /// Threads of the heavy pool.
     pub fn heavy_threads(&self) -> usize {
         self.heavy_threads
+    }
+
+    /// Threads a heavy job that starts on an otherwise idle server runs on.
+    pub fn borrow_threads(&self) -> usize {
+        self.wide_pool
+            .as_ref()
+            .map_or(self.heavy_threads, |p| p.current_num_threads())
+    }
+
+    /// Milliseconds since `epoch`, + 1.
+    fn now_mark(&self) -> u64 {
+        mark_since(self.epoch)
+    }
+
+    /// The pool of a heavy job that has just been counted as running: the wide pool when it
+    /// exists, no other heavy job runs, no cheap job runs or waits and none finished within
+    /// `borrow_quiet`; else the heavy pool.
+    fn heavy_pool_for_new_job(&self) -> Arc<rayon::ThreadPool> {
+        if let Some(wide) = &self.wide_pool {
+            let (cheap, heavy) = (&self.cheap.stats, &self.heavy.stats);
+            let last = self.last_cheap_done.load(Ordering::Relaxed);
+            let quiet = last == 0
+                || self.now_mark().saturating_sub(last) >= self.borrow_quiet.as_millis() as u64;
+            if heavy.running.load(Ordering::Relaxed) == 1
+                && cheap.running.load(Ordering::Relaxed) == 0
+                && cheap.queued.load(Ordering::Relaxed) == 0
+                && quiet
+            {
+                self.borrowed.fetch_add(1, Ordering::Relaxed);
+                metrics::counter!("shapeseek_heavy_jobs_borrowed_total").increment(1);
+                return wide.clone();
+            }
+        }
+        self.heavy_pool.clone()
     }
 
     /// Counts of the cheap and heavy lanes.
@@ -482,7 +559,9 @@ impl Admission {
             cancel: cancel.clone(),
             done: false,
         };
-        let pool = heavy.then(|| self.heavy_pool.clone());
+        let pool = heavy.then(|| self.heavy_pool_for_new_job());
+        // A cheap job marks when it finished (before it stops counting as running).
+        let cheap_done = (!heavy).then(|| (self.last_cheap_done.clone(), self.epoch));
         let handle = tokio::task::spawn_blocking(move || {
             let out = match pool {
                 Some(p) => p.install(|| job(&cancel)),
@@ -491,6 +570,9 @@ impl Admission {
             if cancel.is_cancelled() && out.is_err() {
                 cancelled.fetch_add(1, Ordering::Relaxed);
                 metrics::counter!("shapeseek_jobs_cancelled_total").increment(1);
+            }
+            if let Some((mark, epoch)) = cheap_done {
+                mark.store(mark_since(epoch), Ordering::Relaxed);
             }
             drop(running);
             drop(run);
@@ -502,6 +584,11 @@ impl Admission {
         guard.done = true;
         out
     }
+}
+
+/// Milliseconds since `epoch`, + 1 (so that 0 can mean "never").
+fn mark_since(epoch: Instant) -> u64 {
+    epoch.elapsed().as_millis() as u64 + 1
 }
 
 /// Decrements a lane's counts when a job leaves the queue or finishes.
@@ -552,6 +639,8 @@ mod tests {
             heavy_share: 0.5,
             queue_capacity: queue,
             heavy_nice: 0,
+            heavy_borrow: false,
+            borrow_quiet: BORROW_QUIET,
             retry_after: 3,
             request_timeout: Duration::from_secs(60),
         })
@@ -638,6 +727,88 @@ mod tests {
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
         assert_eq!(a.cancelled.load(Ordering::Relaxed), 1);
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_heavy_job_borrows_every_worker_only_on_an_idle_server() {
+        let make = |borrow: bool| {
+            Arc::new(
+                Admission::new(&AdmissionConfig {
+                    workers: 4,
+                    heavy_share: 0.5,
+                    queue_capacity: 4,
+                    heavy_nice: 5,
+                    heavy_borrow: borrow,
+                    borrow_quiet: Duration::from_millis(200),
+                    retry_after: 3,
+                    request_timeout: Duration::from_secs(60),
+                })
+                .unwrap(),
+            )
+        };
+        let width = |a: Arc<Admission>| async move {
+            a.run(Cost(50), None, |_| Ok(rayon::current_num_threads()))
+                .await
+                .unwrap()
+        };
+        let a = make(true);
+        assert_eq!(a.heavy_threads(), 2);
+        if !cfg!(target_os = "linux") {
+            // Without per-thread nice values borrowing would compete with cheap work.
+            assert_eq!(width(a.clone()).await, 2);
+            return;
+        }
+        assert_eq!(a.borrow_threads(), 4);
+        // Idle: the job gets all four workers.
+        assert_eq!(width(a.clone()).await, 4);
+        assert_eq!(a.borrowed.load(Ordering::Relaxed), 1);
+        // A cheap job running: the heavy pool's two threads.
+        let (tx, rx) = std::sync::mpsc::channel::<()>();
+        let cheap = {
+            let a = a.clone();
+            tokio::spawn(async move {
+                a.run(Cost(1), None, move |_| {
+                    let _ = rx.recv();
+                    Ok(())
+                })
+                .await
+            })
+        };
+        while a.cheap.stats.running.load(Ordering::Relaxed) < 1 {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        assert_eq!(width(a.clone()).await, 2);
+        tx.send(()).unwrap();
+        cheap.await.unwrap().unwrap();
+        // Just after it finished: still the heavy pool; once the lane was quiet 200 ms, all.
+        assert_eq!(width(a.clone()).await, 2);
+        tokio::time::sleep(Duration::from_millis(250)).await;
+        assert_eq!(width(a.clone()).await, 4);
+        assert_eq!(a.borrowed.load(Ordering::Relaxed), 2);
+        // Another heavy job running: the second one gets the heavy pool.
+        let (tx, rx) = std::sync::mpsc::channel::<()>();
+        let first = {
+            let a = a.clone();
+            tokio::spawn(async move {
+                a.run(Cost(50), None, move |_| {
+                    let _ = rx.recv();
+                    Ok(rayon::current_num_threads())
+                })
+                .await
+            })
+        };
+        while a.heavy.stats.running.load(Ordering::Relaxed) < 1 {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        assert_eq!(width(a.clone()).await, 2);
+        tx.send(()).unwrap();
+        assert_eq!(first.await.unwrap().unwrap(), 4);
+        assert_eq!(a.borrowed.load(Ordering::Relaxed), 3);
+        // Switched off: never.
+        let off = make(false);
+        assert_eq!(off.borrow_threads(), 2);
+        assert_eq!(width(off.clone()).await, 2);
+        assert_eq!(off.borrowed.load(Ordering::Relaxed), 0);
     }
 
     #[test]

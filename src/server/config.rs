@@ -68,6 +68,11 @@ pub struct ServerConfig {
     /// Nice value (0..=19) of the threads running expensive work, so cheap searches get the CPU
     /// first when both want it (Linux; 0 = no change).
     pub heavy_nice: i32,
+    /// Let one expensive job use every worker while the server runs nothing else (no cheap
+    /// job running or waiting, no other expensive job), on threads at nice `heavy_nice`; cheap
+    /// work arriving meanwhile takes its core back through the scheduler. Needs
+    /// `heavy_nice` > 0 (Linux) and `heavy_share` < 1 to have any effect.
+    pub heavy_borrow: bool,
     /// Stored original bytes allowed per shape regardless of its geometry.
     pub stored_bytes_floor: usize,
     /// Stored original bytes allowed per vertex + face of the mesh read; an upload over
@@ -121,6 +126,7 @@ impl Default for ServerConfig {
             queue_capacity: 16,
             heavy_share: 0.75,
             heavy_nice: 10,
+            heavy_borrow: true,
             stored_bytes_floor: 256 << 10,
             stored_bytes_per_element: 256,
             oversized_original: "reencode".into(),

@@ -508,6 +508,8 @@ fn queue_stats(app: &App) -> serde_json::Value {
         "workers": app.cfg.effective_workers(),
         "capacity": app.cfg.queue_capacity,
         "heavy_threads": app.admission.heavy_threads(),
+        "borrow_threads": app.admission.borrow_threads(),
+        "borrowed": app.admission.borrowed.load(Ordering::Relaxed),
         "cancelled": app.admission.cancelled.load(Ordering::Relaxed),
         "gw_candidates_skipped": app.admission.skipped.load(Ordering::Relaxed),
         "cheap": lane(cheap),

@@ -61,6 +61,8 @@ impl App {
             heavy_share: cfg.heavy_share,
             queue_capacity: cfg.queue_capacity,
             heavy_nice: cfg.heavy_nice,
+            heavy_borrow: cfg.heavy_borrow,
+            borrow_quiet: super::admission::BORROW_QUIET,
             retry_after: cfg.retry_after_secs,
             request_timeout: std::time::Duration::from_secs_f64(cfg.request_timeout_secs),
         })?;
