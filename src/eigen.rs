@@ -123,6 +123,11 @@ pub struct EigenOptions {
     /// of the default options is unchanged.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub allow_fewer: bool,
+    /// Checked before each block of operator applications of the Krylov solver (a block solve:
+    /// well under a second even at the largest meshes a server accepts); once it fires the
+    /// solve ends with [`Error::Interrupted`]. Not serialised.
+    #[serde(skip)]
+    pub interrupt: crate::error::Interrupt,
 }
 
 impl Default for EigenOptions {
@@ -134,6 +139,7 @@ impl Default for EigenOptions {
             block_size: 0,
             max_restarts: 200,
             allow_fewer: false,
+            interrupt: Default::default(),
         }
     }
 }
@@ -564,6 +570,7 @@ fn krylov_schur(
     loop {
         // Extend the basis block by block up to m columns.
         while cur < m_target {
+            opts.interrupt.check("eigensolve")?;
             let mut wb = v.as_ref().subcols(cur, b).to_owned();
             op.apply(wb.as_mut());
             applications += b;

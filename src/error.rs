@@ -140,6 +140,9 @@ pub enum Error {
         /// Eigenpairs the problem has (its number of unknowns).
         found: usize,
     },
+    /// The caller's [`Interrupt`] asked a long computation (an eigensolve) to stop.
+    #[error("interrupted: {0}")]
+    Interrupted(&'static str),
     /// An argument or specification is invalid.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),
@@ -190,6 +193,7 @@ impl Error {
             },
             Error::Numerical(_) => "spectrum.numerical",
             Error::TooFewEigenpairs { .. } => "spectrum.too_few_eigenpairs",
+            Error::Interrupted(_) => "interrupted",
             Error::InvalidArgument(_) => "request.invalid",
             Error::Io(_) => "io",
             Error::Storage(_) => "storage",
@@ -223,3 +227,40 @@ impl Error {
 
 /// Result alias of the library.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// A caller's request to stop a long computation early: a check the computation calls between
+/// its steps (the eigensolver before each block of operator applications), which then ends with
+/// [`Error::Interrupted`]. The default never interrupts. It carries no data of the computation
+/// and is not part of any options' serialised form (so it changes no cache key).
+#[derive(Clone, Default)]
+pub struct Interrupt(Option<std::sync::Arc<dyn Fn() -> bool + Send + Sync>>);
+
+impl Interrupt {
+    /// An interrupt that fires once `stop` returns true.
+    pub fn new(stop: impl Fn() -> bool + Send + Sync + 'static) -> Interrupt {
+        Interrupt(Some(std::sync::Arc::new(stop)))
+    }
+
+    /// True once the caller asked to stop.
+    pub fn fired(&self) -> bool {
+        self.0.as_ref().is_some_and(|f| f())
+    }
+
+    /// `Err(Error::Interrupted(during))` once the caller asked to stop.
+    pub fn check(&self, during: &'static str) -> Result<()> {
+        if self.fired() {
+            return Err(Error::Interrupted(during));
+        }
+        Ok(())
+    }
+}
+
+impl fmt::Debug for Interrupt {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(if self.0.is_some() {
+            "Interrupt(set)"
+        } else {
+            "Interrupt(none)"
+        })
+    }
+}

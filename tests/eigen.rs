@@ -287,3 +287,43 @@ fn more_eigenpairs_than_unknowns() {
     );
     assert_spectrum(&p.values, &path_eigenvalues(n), 1e-12, "all pairs");
 }
+
+/// An interrupt is checked before each block of operator applications: one that fires at its
+/// third check stops the Krylov solve there with `Error::Interrupted`; one that never fires
+/// changes nothing (same bits); it is not part of the options' JSON (no cache key moves).
+#[test]
+fn an_interrupt_stops_the_krylov_solve_between_blocks() {
+    use shapeseek::error::Interrupt;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+    let n = 800;
+    let l = graph_laplacian(n, &path_edges(n));
+    let mass = vec![1.0; n];
+    let plain = solve(&l, &mass, &options(20, Method::Krylov, 0));
+    let checks = Arc::new(AtomicUsize::new(0));
+    let counted = |fire_at: usize| {
+        let c = checks.clone();
+        EigenOptions {
+            interrupt: Interrupt::new(move || c.fetch_add(1, Ordering::Relaxed) + 1 >= fire_at),
+            ..options(20, Method::Krylov, 0)
+        }
+    };
+    // Never fires: the same result, and the solve made more than three checks.
+    let quiet = solve(&l, &mass, &counted(usize::MAX));
+    assert_eq!(bits(&quiet), bits(&plain));
+    let made = checks.swap(0, Ordering::Relaxed);
+    assert!(made > 3, "{made} checks");
+    // Fires at the third check.
+    match smallest_eigenpairs(&l, &mass, &counted(3)) {
+        Err(shapeseek::Error::Interrupted(during)) => assert_eq!(during, "eigensolve"),
+        other => panic!(
+            "expected an interruption, got {:?}",
+            other.map(|p| p.values)
+        ),
+    }
+    assert_eq!(checks.load(Ordering::Relaxed), 3);
+    assert_eq!(
+        serde_json::to_string(&counted(1)).unwrap(),
+        serde_json::to_string(&options(20, Method::Krylov, 0)).unwrap()
+    );
+}

@@ -671,6 +671,44 @@ fn abandoned_searches_stop_their_work() {
     s.stop();
 }
 
+/// An abandoned upload stops its analysis: the eigensolve checks the request's token before
+/// each block of operator applications (before, an upload whose analysis outlasted the timeout
+/// held the heavy lane — one thread on 2 cores — until its spectrum was done).
+#[test]
+fn abandoned_uploads_stop_their_analysis() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
+        c.request_timeout_secs = 1.0;
+        c.retry_after_secs = 2;
+    });
+    // 163 842 vertices: its analysis alone takes many seconds.
+    let big = obj(&bumpy_sphere(7, 0.05));
+    let t0 = Instant::now();
+    let r = request(s.addr, "POST", "/v1/shapes", "model/obj", &big);
+    assert_problem(&r, 503, "request.timeout");
+    assert_eq!(header(&r.1, "retry-after"), Some("2"));
+    let answered = t0.elapsed();
+    let t1 = Instant::now();
+    while index_info(s.addr)["queue"]["heavy"]["running"] != 0 {
+        assert!(
+            t1.elapsed() < Duration::from_secs(3),
+            "the analysis still runs {:?} after the timeout",
+            t1.elapsed()
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let stopped_after = t1.elapsed();
+    let info = index_info(s.addr);
+    assert_eq!(info["shapes"], 0, "{info}");
+    assert!(info["queue"]["cancelled"].as_u64().unwrap() >= 1, "{info}");
+    // The lane is free: a small upload is analysed at once.
+    let r = request(s.addr, "POST", "/v1/shapes", "model/obj", &obj(&shape(0)));
+    assert_eq!(r.0, 201, "{:?}", String::from_utf8_lossy(&r.2));
+    eprintln!("timeout answered after {answered:?}; analysis stopped {stopped_after:?} later");
+    s.stop();
+}
+
 /// The overload mix of the review: expensive GW searches, cheap scan-only searches and
 /// ingests at once. Every answer is a success or a 503 with `Retry-After`, and the cheap
 /// searches' p99 stays within 5× their p99 measured idle on the same server just before.

@@ -96,6 +96,18 @@ impl Engine {
         crate::signature::sign(mesh, &self.config.signature, &self.analyze)
     }
 
+    /// [`Engine::sign`] that stops with [`crate::Error::Interrupted`] once `interrupt` fires
+    /// (checked inside both versions' eigensolves).
+    pub fn sign_interruptible(
+        &self,
+        mesh: &crate::mesh::Mesh,
+        interrupt: crate::error::Interrupt,
+    ) -> Result<(Analysis, Signature)> {
+        let mut analyze = self.analyze.clone();
+        analyze.eigen.interrupt = interrupt;
+        crate::signature::sign(mesh, &self.config.signature, &analyze)
+    }
+
     /// The spec key a signature was computed with (the record's spec key, checked at load,
     /// covers the analysis options).
     pub fn signature_spec_key(&self, sig: &Signature) -> String {

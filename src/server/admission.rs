@@ -41,7 +41,9 @@
 //! **Cancellation.** Each admitted job gets a [`Cancel`] token: it trips when the request's
 //! deadline passes or when the request future is dropped (the per-request timeout fired, or
 //! the client closed the connection and hyper dropped the request). Jobs check it between
-//! stages and, in the GW stage, before each candidate; a tripped job stops with
+//! stages, in the GW stage before each candidate, and in an upload's eigensolves before each
+//! block of operator applications (through a [`crate::error::Interrupt`] reading the token);
+//! a tripped job stops with
 //! 503 `request.timeout` (nobody reads that answer) and is counted in
 //! `shapeseek_jobs_cancelled_total`.
 

@@ -71,7 +71,13 @@ pub fn analyze_and_sign(
 ) -> Result<(Analysis, Signature, Option<GwPayload>), ApiError> {
     cancel.check()?;
     let t2 = Instant::now();
-    let (analysis, sig) = engine.sign(mesh)?;
+    let stop = cancel.clone();
+    let interrupt = crate::error::Interrupt::new(move || stop.is_cancelled());
+    // An interrupted eigensolve answers as the cancellation does.
+    let (analysis, sig) = engine.sign_interruptible(mesh, interrupt).or_else(|e| {
+        cancel.check()?;
+        Err(ApiError::from(e))
+    })?;
     cancel.check()?;
     t.prepare_ms = analysis.timings.prepare_ms;
     t.laplacian_ms = analysis.timings.laplacian_ms;

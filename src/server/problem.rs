@@ -126,6 +126,8 @@ impl ApiError {
             | E::Degenerate { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             E::InvalidArgument(_) => StatusCode::BAD_REQUEST,
             E::Queue(_) => StatusCode::SERVICE_UNAVAILABLE,
+            // Only a request's cancellation token interrupts: its answer is the timeout's.
+            E::Interrupted(_) => return Some((StatusCode::SERVICE_UNAVAILABLE, "request.timeout")),
             E::Io(_) | E::Storage(_) | E::Corrupt { .. } => return None,
         };
         Some((status, e.code()))

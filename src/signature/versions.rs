@@ -65,7 +65,8 @@ pub fn second_version(
 ///
 /// # Errors
 /// Those of [`analyze`] and [`compute_signature`] on the first version, and of
-/// [`compute_signature`] on the second.
+/// [`compute_signature`] on the second; [`crate::Error::Interrupted`] once `base.eigen`'s
+/// interrupt has fired.
 pub fn sign(
     mesh: &Mesh,
     spec: &SignatureSpec,
@@ -74,5 +75,7 @@ pub fn sign(
     let first = analyze(mesh, &spec.analysis_options(base))?;
     let mut sig = compute_signature(&first, spec)?;
     sig.alternate = second_version(mesh, &first, spec, base)?.map(Box::new);
+    // An interrupted second analysis reads as "no second version" above: never return that.
+    base.eigen.interrupt.check("second version")?;
     Ok((first, sig))
 }
