@@ -1,6 +1,7 @@
 //! Proof of correctness of the spectral core on analytic cases: the unit sphere (λ = l(l+1),
 //! multiplicity 2l+1), a flat rectangle (Neumann spectrum), invariance to rigid motion and vertex
-//! order, A-orthonormality, residuals, determinism, and dense/Krylov agreement.
+//! order, A-orthonormality, residuals, determinism, dense/Krylov agreement, and that an interrupted
+//! analysis never yields a signature.
 
 mod common;
 
@@ -340,4 +341,48 @@ fn default_signature_does_not_depend_on_the_thread_count() {
             "{threads} threads sign differently from one"
         );
     }
+}
+
+/// The server's path from a mesh to its signature under an interrupt: a torus, which the
+/// default's alternate cut gives a second version. Whichever of the eigensolves' checks the
+/// interrupt fires at — in the first version's solve or in the second's — the result is
+/// `Error::Interrupted`, never a signature (and never one whose missing second version would
+/// only mean that its solve was cut short); one check later than the last there is, the
+/// signature has both versions.
+#[test]
+fn an_interrupted_signature_is_an_error_at_every_check() {
+    use shapeseek::error::Interrupt;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+    let engine = shapeseek::index::Engine::new();
+    let mesh = generate::bumpy_torus(40, 16);
+    let checks = Arc::new(AtomicUsize::new(0));
+    let firing_at = |at: usize| {
+        checks.store(0, Ordering::Relaxed);
+        let c = checks.clone();
+        Interrupt::new(move || c.fetch_add(1, Ordering::Relaxed) + 1 >= at)
+    };
+    let (_, whole) = engine
+        .sign_interruptible(&mesh, firing_at(usize::MAX))
+        .unwrap();
+    assert!(
+        whole.alternate.is_some(),
+        "the torus should have two versions"
+    );
+    let total = checks.load(Ordering::Relaxed);
+    assert!(total >= 4, "{total} checks");
+    for at in 1..=total {
+        match engine.sign_interruptible(&mesh, firing_at(at)) {
+            Err(shapeseek::Error::Interrupted(_)) => {}
+            Err(e) => panic!("check {at} of {total}: {e}"),
+            Ok((_, sig)) => panic!(
+                "check {at} of {total}: a signature (second version: {})",
+                sig.alternate.is_some()
+            ),
+        }
+    }
+    let (_, again) = engine
+        .sign_interruptible(&mesh, firing_at(total + 1))
+        .unwrap();
+    assert!(again.alternate.is_some());
 }

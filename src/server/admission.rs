@@ -31,7 +31,9 @@
 //! cheap search would often find both cores taken by niced threads. The choice is made once,
 //! at start: a cheap job that arrives while such a job runs gets its core back from the
 //! scheduler (a niced thread yields to a normal one), not from admission; heavy jobs that
-//! start meanwhile use the narrow pool.
+//! start meanwhile use the narrow pool. Background work on the heavy pool
+//! ([`Admission::on_heavy_pool`]: recalibration, recomputation) is not a lane job, so a job
+//! that borrows while it runs shares the cores with it, all of them niced.
 //!
 //! **Refusal.** A lane whose queue is full refuses at once with 503 `server.busy` and
 //! `Retry-After`; so does the heavy lane when the work already ahead of a job (the units of the

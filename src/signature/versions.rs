@@ -74,6 +74,7 @@ pub fn sign(
 ) -> Result<(Analysis, Signature)> {
     let first = analyze(mesh, &spec.analysis_options(base))?;
     let mut sig = compute_signature(&first, spec)?;
+    base.eigen.interrupt.check("signature")?;
     sig.alternate = second_version(mesh, &first, spec, base)?.map(Box::new);
     // An interrupted second analysis reads as "no second version" above: never return that.
     base.eigen.interrupt.check("second version")?;
