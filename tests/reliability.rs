@@ -508,6 +508,20 @@ fn percentile(v: &mut [f64], p: f64) -> f64 {
     v[((p * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1]
 }
 
+/// How long until the heavy lane runs nothing; fails past `within`.
+fn heavy_lane_empties(addr: SocketAddr, within: Duration) -> Duration {
+    let t = Instant::now();
+    while index_info(addr)["queue"]["heavy"]["running"] != 0 {
+        assert!(
+            t.elapsed() < within,
+            "the heavy lane still runs {:?} after the timeout",
+            t.elapsed()
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    t.elapsed()
+}
+
 /// CPU time (user + system) of this process so far, seconds: the server runs in it.
 fn process_cpu_secs() -> f64 {
     let stat = std::fs::read_to_string("/proc/self/stat").unwrap();
@@ -608,16 +622,7 @@ fn abandoned_searches_stop_their_work() {
     assert_eq!(header(&r.1, "retry-after"), Some("2"));
     let answered = t0.elapsed();
     // The job stops: the heavy lane is empty within a candidate's time (+ polling).
-    let t1 = Instant::now();
-    while index_info(addr)["queue"]["heavy"]["running"] != 0 {
-        assert!(
-            t1.elapsed() < Duration::from_millis(1500),
-            "still running {:?} after the timeout",
-            t1.elapsed()
-        );
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    let stopped_after = t1.elapsed();
+    let stopped_after = heavy_lane_empties(addr, Duration::from_millis(1500));
     // And the process is idle: CPU time over the next second.
     let cpu0 = process_cpu_secs();
     let w0 = Instant::now();
@@ -689,16 +694,7 @@ fn abandoned_uploads_stop_their_analysis() {
     assert_problem(&r, 503, "request.timeout");
     assert_eq!(header(&r.1, "retry-after"), Some("2"));
     let answered = t0.elapsed();
-    let t1 = Instant::now();
-    while index_info(s.addr)["queue"]["heavy"]["running"] != 0 {
-        assert!(
-            t1.elapsed() < Duration::from_secs(3),
-            "the analysis still runs {:?} after the timeout",
-            t1.elapsed()
-        );
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    let stopped_after = t1.elapsed();
+    let stopped_after = heavy_lane_empties(s.addr, Duration::from_secs(3));
     let info = index_info(s.addr);
     assert_eq!(info["shapes"], 0, "{info}");
     assert!(info["queue"]["cancelled"].as_u64().unwrap() >= 1, "{info}");

@@ -766,18 +766,21 @@ mod tests {
         // Idle: the job gets all four workers.
         assert_eq!(width(a.clone()).await, 4);
         assert_eq!(a.borrowed.load(Ordering::Relaxed), 1);
-        // A cheap job running: the heavy pool's two threads.
-        let (tx, rx) = std::sync::mpsc::channel::<()>();
-        let cheap = {
+        // A job of `cost` that runs until told, and answers its pool's width.
+        let blocked = |cost: Cost| {
+            let (tx, rx) = std::sync::mpsc::channel::<()>();
             let a = a.clone();
-            tokio::spawn(async move {
-                a.run(Cost(1), None, move |_| {
+            let job = tokio::spawn(async move {
+                a.run(cost, None, move |_| {
                     let _ = rx.recv();
-                    Ok(())
+                    Ok(rayon::current_num_threads())
                 })
                 .await
-            })
+            });
+            (tx, job)
         };
+        // A cheap job running: the heavy pool's two threads.
+        let (tx, cheap) = blocked(Cost(1));
         while a.cheap.stats.running.load(Ordering::Relaxed) < 1 {
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
@@ -790,17 +793,7 @@ mod tests {
         assert_eq!(width(a.clone()).await, 4);
         assert_eq!(a.borrowed.load(Ordering::Relaxed), 2);
         // Another heavy job running: the second one gets the heavy pool.
-        let (tx, rx) = std::sync::mpsc::channel::<()>();
-        let first = {
-            let a = a.clone();
-            tokio::spawn(async move {
-                a.run(Cost(50), None, move |_| {
-                    let _ = rx.recv();
-                    Ok(rayon::current_num_threads())
-                })
-                .await
-            })
-        };
+        let (tx, first) = blocked(Cost(50));
         while a.heavy.stats.running.load(Ordering::Relaxed) < 1 {
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
