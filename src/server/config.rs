@@ -68,10 +68,11 @@ pub struct ServerConfig {
     /// Nice value (0..=19) of the threads running expensive work, so cheap searches get the CPU
     /// first when both want it (Linux; 0 = no change).
     pub heavy_nice: i32,
-    /// Let one expensive job use every worker while the server runs nothing else (no cheap
-    /// job running or waiting, no other expensive job), on threads at nice `heavy_nice`; cheap
-    /// work arriving meanwhile takes its core back through the scheduler. Needs
-    /// `heavy_nice` > 0 (Linux) and `heavy_share` < 1 to have any effect.
+    /// Let an expensive job use every worker when it starts while no other expensive job runs
+    /// and no cheap job runs, waits or finished within the last second; its threads run at nice
+    /// `heavy_nice`, so cheap work arriving meanwhile takes its core back through the
+    /// scheduler. No effect unless `heavy_nice` > 0 (Linux) and the heavy lane has fewer
+    /// threads than there are workers.
     pub heavy_borrow: bool,
     /// Stored original bytes allowed per shape regardless of its geometry.
     pub stored_bytes_floor: usize,
