@@ -429,11 +429,6 @@ impl Admission {
             .map_or(self.heavy_threads, |p| p.current_num_threads())
     }
 
-    /// Milliseconds since `epoch`, + 1.
-    fn now_mark(&self) -> u64 {
-        mark_since(self.epoch)
-    }
-
     /// The pool of a heavy job that has just been counted as running: the wide pool when it
     /// exists, no other heavy job runs, no cheap job runs or waits and none finished within
     /// `borrow_quiet`; else the heavy pool.
@@ -442,7 +437,8 @@ impl Admission {
             let (cheap, heavy) = (&self.cheap.stats, &self.heavy.stats);
             let last = self.last_cheap_done.load(Ordering::Relaxed);
             let quiet = last == 0
-                || self.now_mark().saturating_sub(last) >= self.borrow_quiet.as_millis() as u64;
+                || mark_since(self.epoch).saturating_sub(last)
+                    >= self.borrow_quiet.as_millis() as u64;
             if heavy.running.load(Ordering::Relaxed) == 1
                 && cheap.running.load(Ordering::Relaxed) == 0
                 && cheap.queued.load(Ordering::Relaxed) == 0

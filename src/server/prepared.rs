@@ -72,12 +72,10 @@ pub fn analyze_and_sign(
     cancel.check()?;
     let t2 = Instant::now();
     let stop = cancel.clone();
+    // An interrupted eigensolve answers 503 `request.timeout`, as a cancellation does
+    // (`ApiError::status_of`).
     let interrupt = crate::error::Interrupt::new(move || stop.is_cancelled());
-    // An interrupted eigensolve answers as the cancellation does.
-    let (analysis, sig) = engine.sign_interruptible(mesh, interrupt).or_else(|e| {
-        cancel.check()?;
-        Err(ApiError::from(e))
-    })?;
+    let (analysis, sig) = engine.sign_interruptible(mesh, interrupt)?;
     cancel.check()?;
     t.prepare_ms = analysis.timings.prepare_ms;
     t.laplacian_ms = analysis.timings.laplacian_ms;

@@ -17,7 +17,7 @@ use super::spec::SignatureSpec;
 use crate::mesh::prepare::prepare;
 use crate::mesh::Mesh;
 use crate::spectrum::{analyze, analyze_prepared, Analysis, AnalyzeOptions};
-use crate::Result;
+use crate::{Error, Result};
 use std::time::Instant;
 
 /// The analysis of the second version of `mesh`, whose first version is `first` (analysed with
@@ -25,20 +25,32 @@ use std::time::Instant;
 /// preparation leaves the same mesh as the first, or fails (the shape then has one version,
 /// as under a spec without an alternate cut; the first version's own errors are the ones
 /// reported).
+///
+/// # Errors
+/// Only [`Error::Interrupted`]: a solve stopped by `base.eigen`'s interrupt is the caller's
+/// stop, not a second version that failed.
 pub fn alternate_analysis(
     mesh: &Mesh,
     first: &Analysis,
     spec: &SignatureSpec,
     base: &AnalyzeOptions,
-) -> Option<Analysis> {
-    let opts = spec.alternate_analysis_options(base)?;
+) -> Result<Option<Analysis>> {
+    let Some(opts) = spec.alternate_analysis_options(base) else {
+        return Ok(None);
+    };
     let t0 = Instant::now();
-    let (prepared, report) = prepare(mesh, &opts.prepare).ok()?;
+    let Ok((prepared, report)) = prepare(mesh, &opts.prepare) else {
+        return Ok(None);
+    };
     if prepared.vertices == first.mesh.vertices && prepared.faces == first.mesh.faces {
-        return None;
+        return Ok(None);
     }
     let ms = t0.elapsed().as_secs_f64() * 1e3;
-    analyze_prepared(prepared, report, &opts, ms).ok()
+    match analyze_prepared(prepared, report, &opts, ms) {
+        Ok(second) => Ok(Some(second)),
+        Err(e @ Error::Interrupted(_)) => Err(e),
+        Err(_) => Ok(None),
+    }
 }
 
 /// The second version's signature of `mesh` ([`alternate_analysis`], then its channels under
@@ -46,14 +58,14 @@ pub fn alternate_analysis(
 /// versions carry the same spec key); `None` when the shape has one version.
 ///
 /// # Errors
-/// Those of [`compute_signature`] on the second version.
+/// Those of [`alternate_analysis`], and of [`compute_signature`] on the second version.
 pub fn second_version(
     mesh: &Mesh,
     first: &Analysis,
     spec: &SignatureSpec,
     base: &AnalyzeOptions,
 ) -> Result<Option<Signature>> {
-    alternate_analysis(mesh, first, spec, base)
+    alternate_analysis(mesh, first, spec, base)?
         .map(|second| compute_signature(&second, spec))
         .transpose()
 }
@@ -65,8 +77,8 @@ pub fn second_version(
 ///
 /// # Errors
 /// Those of [`analyze`] and [`compute_signature`] on the first version, and of
-/// [`compute_signature`] on the second; [`crate::Error::Interrupted`] once `base.eigen`'s
-/// interrupt has fired.
+/// [`compute_signature`] on the second; [`Error::Interrupted`] when `base.eigen`'s interrupt
+/// stopped either version's eigensolve.
 pub fn sign(
     mesh: &Mesh,
     spec: &SignatureSpec,
@@ -74,9 +86,6 @@ pub fn sign(
 ) -> Result<(Analysis, Signature)> {
     let first = analyze(mesh, &spec.analysis_options(base))?;
     let mut sig = compute_signature(&first, spec)?;
-    base.eigen.interrupt.check("signature")?;
     sig.alternate = second_version(mesh, &first, spec, base)?.map(Box::new);
-    // An interrupted second analysis reads as "no second version" above: never return that.
-    base.eigen.interrupt.check("second version")?;
     Ok((first, sig))
 }
