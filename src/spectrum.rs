@@ -136,6 +136,9 @@ pub fn analyze_prepared(
     opts: &AnalyzeOptions,
     prepare_ms: f64,
 ) -> crate::Result<Analysis> {
+    // The preparation is not interruptible; the next check is the eigensolve's first, after
+    // the Laplacian and the factorisation.
+    opts.eigen.interrupt.check("preparation")?;
     let (spectrum, eigen_stats, st) =
         compute_spectrum_with(&prepared, opts.laplacian, &opts.eigen)?;
     Ok(Analysis {

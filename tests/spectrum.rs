@@ -344,8 +344,8 @@ fn default_signature_does_not_depend_on_the_thread_count() {
 }
 
 /// The server's path from a mesh to its signature under an interrupt: a torus, which the
-/// default's alternate cut gives a second version. Whichever of the eigensolves' checks the
-/// interrupt fires at — in the first version's solve or in the second's — the result is
+/// default's alternate cut gives a second version. Whichever check the interrupt fires at — in
+/// the first version's analysis or signature or in the second's — the result is
 /// `Error::Interrupted`, never a signature (and never one whose missing second version would
 /// only mean that its solve was cut short); one check later than the last there is, the
 /// signature has both versions.
@@ -371,6 +371,7 @@ fn an_interrupted_signature_is_an_error_at_every_check() {
     );
     let total = checks.load(Ordering::Relaxed);
     assert!(total >= 4, "{total} checks");
+    eprintln!("{total} checks in the two versions' analyses and signatures");
     for at in 1..=total {
         match engine.sign_interruptible(&mesh, firing_at(at)) {
             Err(shapeseek::Error::Interrupted(_)) => {}

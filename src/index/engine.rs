@@ -97,7 +97,8 @@ impl Engine {
     }
 
     /// [`Engine::sign`] that stops with [`crate::Error::Interrupted`] once `interrupt` fires
-    /// (checked inside both versions' eigensolves).
+    /// (checked in both versions' analyses and signatures: after the preparation, inside the
+    /// eigensolve, after the sampling and before each channel).
     pub fn sign_interruptible(
         &self,
         mesh: &crate::mesh::Mesh,

@@ -8,6 +8,7 @@ use super::kernels::{
 use super::sampling::{farthest_points, EdgeGraph, NearField, Quadrature};
 use super::scale_invariant::{si_kernel_rows, si_pairs, tau_grid};
 use super::spec::{validate_spec, ChannelKind, Norm, PairQuadrature, SignatureSpec};
+use crate::error::Interrupt;
 use crate::scale::SpectrumScaling;
 use crate::spectrum::{Analysis, ZERO_MODE_TOLERANCE};
 use crate::{Error, Result};
@@ -60,12 +61,27 @@ pub struct Signature {
 /// zero samples or quantiles, more ShapeDNA eigenvalues than the spectrum has) or a spectrum that
 /// does not match the mesh.
 pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Signature> {
+    compute_signature_interruptible(analysis, spec, &Interrupt::default())
+}
+
+/// [`compute_signature`] that stops with [`Error::Interrupted`] once `interrupt` fires: it is
+/// checked after the sampling (the edge graph and the farthest points, the longest step before
+/// the channels: 0.36 s of 0.95 s on a 163 842-vertex sphere) and before each channel.
+pub fn compute_signature_interruptible(
+    analysis: &Analysis,
+    spec: &SignatureSpec,
+    interrupt: &Interrupt,
+) -> Result<Signature> {
     validate_spec(spec)?;
     // Scale selection by rescaling the spectrum (crate::scale).
     if !spec.spectrum_scaling.is_none() {
         let mut plain = spec.clone();
         plain.spectrum_scaling = SpectrumScaling::None;
-        let mut sig = compute_signature(&spec.spectrum_scaling.apply(analysis), &plain)?;
+        let mut sig = compute_signature_interruptible(
+            &spec.spectrum_scaling.apply(analysis),
+            &plain,
+            interrupt,
+        )?;
         sig.spec_key = spec.key();
         return Ok(sig);
     }
@@ -156,6 +172,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
         Some(g) if !prefixes.is_empty() => Some(farthest_points(mesh, g, &prefixes)),
         _ => None,
     };
+    interrupt.check("signature")?;
     let cells = |count: usize| -> Quadrature {
         let f = fps
             .as_ref()
@@ -212,6 +229,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
     let base_values: Vec<Result<ChannelValues>> = bases
         .par_iter()
         .map(|&kind| {
+            interrupt.check("signature")?;
             Ok(match kind {
                 ChannelKind::Spectral { kernel, norm } => {
                     let w = vec![transfer_weights(kernel, &sp.eigenvalues, zero_tol)];

@@ -97,7 +97,9 @@ pub mod versions;
 
 /// Re-exported from [`crate::spectrum`], where zero modes are defined.
 pub use crate::spectrum::ZERO_MODE_TOLERANCE;
-pub use compute::{compute_signature, ChannelData, ChannelValues, Signature};
+pub use compute::{
+    compute_signature, compute_signature_interruptible, ChannelData, ChannelValues, Signature,
+};
 pub use distributions::{truncate_sketch, QuantileSketch};
 pub use kernels::transfer_weights;
 pub(crate) use sampling::{farthest_points, EdgeGraph};

@@ -12,7 +12,7 @@
 //! upload, recomputation of stale signatures); eval, which caches the first analysis, calls
 //! [`second_version`] with it.
 
-use super::compute::{compute_signature, Signature};
+use super::compute::{compute_signature_interruptible, Signature};
 use super::spec::SignatureSpec;
 use crate::mesh::prepare::prepare;
 use crate::mesh::Mesh;
@@ -54,11 +54,13 @@ pub fn alternate_analysis(
 }
 
 /// The second version's signature of `mesh` ([`alternate_analysis`], then its channels under
-/// the same spec: [`compute_signature`] reads only the channels and the discretisation, so both
-/// versions carry the same spec key); `None` when the shape has one version.
+/// the same spec: [`compute_signature_interruptible`] reads only the channels and the
+/// discretisation, so both versions carry the same spec key); `None` when the shape has one
+/// version.
 ///
 /// # Errors
-/// Those of [`alternate_analysis`], and of [`compute_signature`] on the second version.
+/// Those of [`alternate_analysis`], and of [`compute_signature_interruptible`] on the second
+/// version (under `base.eigen`'s interrupt).
 pub fn second_version(
     mesh: &Mesh,
     first: &Analysis,
@@ -66,7 +68,7 @@ pub fn second_version(
     base: &AnalyzeOptions,
 ) -> Result<Option<Signature>> {
     alternate_analysis(mesh, first, spec, base)?
-        .map(|second| compute_signature(&second, spec))
+        .map(|second| compute_signature_interruptible(&second, spec, &base.eigen.interrupt))
         .transpose()
 }
 
@@ -76,16 +78,17 @@ pub fn second_version(
 /// spec's cuts are applied.
 ///
 /// # Errors
-/// Those of [`analyze`] and [`compute_signature`] on the first version, and of
-/// [`compute_signature`] on the second; [`Error::Interrupted`] when `base.eigen`'s interrupt
-/// stopped either version's eigensolve.
+/// Those of [`analyze`] and [`compute_signature_interruptible`] on the first version, and of
+/// [`compute_signature_interruptible`] on the second; [`Error::Interrupted`] when
+/// `base.eigen`'s interrupt fired during either version's analysis (after its preparation,
+/// inside its eigensolve) or signature (after its sampling, before each channel).
 pub fn sign(
     mesh: &Mesh,
     spec: &SignatureSpec,
     base: &AnalyzeOptions,
 ) -> Result<(Analysis, Signature)> {
     let first = analyze(mesh, &spec.analysis_options(base))?;
-    let mut sig = compute_signature(&first, spec)?;
+    let mut sig = compute_signature_interruptible(&first, spec, &base.eigen.interrupt)?;
     sig.alternate = second_version(mesh, &first, spec, base)?.map(Box::new);
     Ok((first, sig))
 }
