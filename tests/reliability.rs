@@ -611,12 +611,16 @@ fn abandoned_searches_stop_their_work() {
     let s = Server::start(dir.path(), GRACE_SECS, |c| {
         c.request_timeout_secs = 1.0;
         c.retry_after_secs = 2;
+        // One heavy thread whatever the machine's cores, so that the search below takes as
+        // long on a many-core machine.
+        c.workers = 2;
+        c.heavy_borrow = false;
     });
     let ids = ingest_corpus(s.addr, 200);
     let addr = s.addr;
-    // Alone, this search must outlast the 1 s timeout: 199 candidates, 20 outer iterations
-    // (143 candidates took 1.47 s without a timeout, on an idle 2-core server; 47 took 0.5 s
-    // once the solver's products used SIMD; 23, before that, once 0.95 s).
+    // Alone, this search must outlast the 1 s timeout: 199 candidates, 20 outer iterations on
+    // one thread took 4.7 s without a timeout (47 candidates on both cores took 0.5 s once the
+    // solver's products used SIMD; 23, before that, 0.95 s).
     let t0 = Instant::now();
     let r = search(addr, &gw_search(&ids[0], 20));
     assert_problem(&r, 503, "request.timeout");
