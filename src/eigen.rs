@@ -33,7 +33,7 @@
 //! Small problems (or `k` close to `n`) use a dense symmetric eigensolver on
 //! `A^{-1/2} L A^{-1/2}` instead. Everything is deterministic for a given input: the start block
 //! comes from a fixed-seed generator and every parallel reduction has a fixed order, the same
-//! whatever the number of threads (faer's kernels get a fixed degree, [`FAER_DEGREE`], and the
+//! whatever the number of threads (faer's kernels get a fixed degree, `FAER_DEGREE`, and the
 //! block's solves are always split in two), so a result has the same bits on every machine.
 //!
 //! # Conventions

@@ -60,7 +60,7 @@ pub enum SpectrumScaling {
     },
 }
 
-/// The band of the product default's Weyl fit ([`crate::ranking::default_config`]): the first
+/// The band of the product default's Weyl fit ([`crate::presets::default_config`]): the first
 /// 100 eigenpairs, i.e. the spectrum the scale rule was evaluated with on bench/dev (k = 100).
 pub const WEYL_FIT_EIGENPAIRS: usize = 100;
 

@@ -256,7 +256,7 @@ fn draw(
     s
 }
 
-/// An SVG chart of `series` (name, points in [0,1]²) with the given title and axis labels.
+/// An SVG chart of `series` (name, points in `[0, 1]²`) with the given title and axis labels.
 /// `diagonal` draws the chance line y = x (for ROC curves). Each series has its own colour
 /// (dashed after the tenth); the legend lists as many as fit.
 pub fn line_chart(

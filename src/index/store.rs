@@ -116,7 +116,7 @@ const LOCK_PATIENCE: std::time::Duration = std::time::Duration::from_secs(2);
 /// sled releases its file lock only when the last of its background threads lets go of a
 /// database, which can be a moment after the database was dropped: reopening right after closing
 /// (as `migrate` does: it reads the version, backs up, then opens again) could be refused. A
-/// refused lock is therefore retried for [`LOCK_PATIENCE`] before it is reported as another
+/// refused lock is therefore retried for `LOCK_PATIENCE` before it is reported as another
 /// process's.
 pub fn open_db(path: &Path) -> Result<sled::Db> {
     let deadline = std::time::Instant::now() + LOCK_PATIENCE;

@@ -196,7 +196,7 @@ pub fn taubin_counted(mesh: &Mesh, opts: &SmoothOptions) -> (Mesh, usize) {
     (out, done)
 }
 
-/// [`roughness`] of a mesh, with the umbrella neighbours [`taubin`] uses.
+/// `roughness` of a mesh, with the umbrella neighbours [`taubin`] uses.
 pub fn mesh_roughness(mesh: &Mesh) -> f64 {
     roughness(&mesh.faces, &neighbours(mesh), &mesh.vertices)
 }

@@ -477,7 +477,7 @@ const NO_ALT: u32 = u32::MAX;
 
 /// Every shape of a corpus in one layout, shape-major, positions `0..len`: the first versions
 /// in one set of flat arrays, the second versions in another (in position order), and per
-/// shape the row of its second version or [`NO_ALT`] (4 bytes per shape).
+/// shape the row of its second version or `NO_ALT` (4 bytes per shape).
 #[derive(Clone, Debug)]
 pub struct Corpus {
     layout: Layout,

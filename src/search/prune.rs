@@ -32,7 +32,7 @@
 //! | χ² | `2 Σ_g (A_g − B_g)² / (A_g + B_g) / T` | Sedrakyan: `(Σ x)² / Σ y ≤ Σ x² / y` |
 //!
 //! A **vector channel** (ShapeDNA's eigenvalues) is bounded the same way from the sums of its
-//! values over [`VECTOR_GROUPS`] groups ([`vector_bound`]: L1 and nL1 `Σ_g |A_g − B_g|`, L∞
+//! values over [`VECTOR_GROUPS`] groups (`vector_bound`: L1 and nL1 `Σ_g |A_g − B_g|`, L∞
 //! `max_g |A_g − B_g| / w_g`, the Euclidean distance `(Σ_g (A_g − B_g)²/w_g)^{1/2}`, each gap
 //! lowered by an allowance for the sums' `f32` rounding). Without it a query whose eigenvalues
 //! are far from every stored shape's (a shape uploaded at another scale) would bound nothing

@@ -4,7 +4,7 @@
 //! `/v1/search` by fanning out to every shard (protocol: [`crate::queue::shard`]).
 //!
 //! * **Replica of a shard**: loading, the change feed and reconciliation keep the shard's
-//!   shapes only ([`App::foreign_change`], `src/server/load.rs`, `src/server/cluster.rs`).
+//!   shapes only (`App::foreign_change`, `src/server/load.rs`, `src/server/cluster.rs`).
 //!   Several nodes may serve one shard: the queue group lets one of them answer each request.
 //! * **Calibration stays global**: a sharded node decides and computes recalibrations on the
 //!   whole stored corpus — its size is the store's count, the calibration is computed from the
@@ -12,12 +12,12 @@
 //!   `calibration_sample`, in id order — what a single node holding everything computes) under
 //!   the store's lock, and every node installs the stored epoch. A shard answers only when its
 //!   calibration is the coordinator's (epoch and fingerprint), so scores are comparable.
-//! * **Coordinator** ([`App::sharded_search`]): the query is encoded once under this node's
+//! * **Coordinator** (`App::sharded_search`): the query is encoded once under this node's
 //!   calibration (an upload's signature, or a stored shape's signature read from the store),
 //!   sent to every shard with the first stage's spec and `k = max(top_k, largest shortlist)`;
 //!   the local top-`k`s are merged by `(score, id)` — a single node's scan orders ties by
 //!   position, which is id order — and the rerank stages run here on the candidates'
-//!   encodings returned by the shards ([`ShardEnv`]), GW payloads read from the store.
+//!   encodings returned by the shards (`ShardEnv`), GW payloads read from the store.
 //! * **Failures**: a shard that does not answer completely within `shard_timeout_secs` (or the
 //!   request's deadline) → 503 `search.shard_unavailable` naming it, with `Retry-After`; a
 //!   shard under another calibration epoch → retried every 50 ms (this node first installs a

@@ -29,7 +29,7 @@ pub enum ChannelValues {
 /// One channel of a [`Signature`].
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct ChannelData {
-    /// [`ChannelSpec::name`] of the channel.
+    /// [`ChannelSpec::name`](super::spec::ChannelSpec::name) of the channel.
     pub name: String,
     /// The values.
     pub values: ChannelValues,

@@ -17,7 +17,7 @@
 //! work and recalibration, inside [`on_blocking_thread`]) runs the call inline instead. The
 //! backend is chosen at run time from the command line (`--data DIR` or
 //! `--store postgres://…`), so the server holds an `Arc<dyn ShapeStore>`: the trait must be
-//! dyn-compatible, which `async fn` in traits is not; [`async_trait`] boxes each future (one
+//! dyn-compatible, which `async fn` in traits is not; `async_trait` boxes each future (one
 //! allocation per call, nothing against a storage round trip). Methods take owned or borrowed
 //! plain data and return owned bytes, so neither backend's types leak through the seam.
 //!
