@@ -66,7 +66,7 @@ pub fn compute_signature(analysis: &Analysis, spec: &SignatureSpec) -> Result<Si
 
 /// [`compute_signature`] that stops with [`Error::Interrupted`] once `interrupt` fires: it is
 /// checked after the sampling (the edge graph and the farthest points, the longest step before
-/// the channels: 0.36 s of 0.95 s on a 163 842-vertex sphere) and before each channel.
+/// the channels) and before each channel.
 pub fn compute_signature_interruptible(
     analysis: &Analysis,
     spec: &SignatureSpec,

@@ -156,8 +156,8 @@ pub enum ChannelKind {
         count: usize,
         /// Factor applied to every eigenvalue (1 unless set; omitted from the JSON, the key and
         /// the name when 1). A vector channel's dissimilarity is in the eigenvalues' units (L1:
-        /// `Σ|λ − λ'|`), so in a [`Aggregation::Sum`] with
-        /// histogram channels (nL1, at most 2 each) this factor is the vector channel's weight.
+        /// `Σ|λ − λ'|`), so in a [`Aggregation::Sum`] with histogram channels (nL1, at most 2
+        /// each) this factor is the vector channel's weight.
         #[serde(default = "unit_weight", skip_serializing_if = "is_unit_weight")]
         weight: f64,
     },

@@ -27,8 +27,8 @@ use std::time::Instant;
 /// reported).
 ///
 /// # Errors
-/// Only [`Error::Interrupted`]: a solve stopped by `base.eigen`'s interrupt is the caller's
-/// stop, not a second version that failed.
+/// Only [`Error::Interrupted`]: an analysis stopped by `base.eigen`'s interrupt is the
+/// caller's stop, not a second version that failed.
 pub fn alternate_analysis(
     mesh: &Mesh,
     first: &Analysis,
