@@ -72,8 +72,8 @@ pub fn analyze_and_sign(
     cancel.check()?;
     let t2 = Instant::now();
     let stop = cancel.clone();
-    // An interrupted eigensolve answers 503 `request.timeout`, as a cancellation does
-    // (`ApiError::status_of`).
+    // An interrupted analysis or signature answers 503 `request.timeout`, as a cancellation
+    // does (`ApiError::status_of`).
     let interrupt = crate::error::Interrupt::new(move || stop.is_cancelled());
     let (analysis, sig) = engine.sign_interruptible(mesh, interrupt)?;
     cancel.check()?;
