@@ -27,7 +27,9 @@
 use super::admission::{Cancel, Cost};
 use super::env::{gw_scores, pairwise, rescore};
 use super::problem::ApiError;
-use super::state::{App, Hitting, QueryAnalysis, SearchOptions, SearchResult, SearchTimings};
+use super::state::{
+    decode_payload, no_payload, App, Hitting, SearchOptions, SearchPlan, SearchResult,
+};
 use crate::index::ScanIndex;
 use crate::queue::shard::{
     answer_messages, decode_request, encode_reply, fingerprint, id_number, scatter, send_reply,
@@ -36,7 +38,7 @@ use crate::queue::shard::{
 use crate::ranking::QuerySpec;
 use crate::rerank::{GwPayload, SgwStage};
 use crate::search::corpus::{Encoded, Layout};
-use crate::search::{Entry, Env, Query, Stage};
+use crate::search::{Entry, Env, Query};
 use axum::http::StatusCode;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -266,28 +268,22 @@ impl App {
     pub(super) async fn sharded_search(
         self: &Arc<Self>,
         opts: SearchOptions,
-        query_sig: Option<QueryAnalysis>,
+        plan: SearchPlan,
         deadline: Option<Instant>,
     ) -> Result<SearchResult, ApiError> {
-        let t0 = Instant::now();
-        let (top_k, spec, spec_json, stages) = self.resolve_options(&opts)?;
         let (Some(sh), Some(cl)) = (self.shard(), self.cluster()) else {
             return Err(ApiError::internal("a sharded search without shards"));
         };
-        let (query_sig, upload_payload, analysis_t) = match query_sig {
-            Some((s, p, t)) => (Some(s), p, Some(t)),
-            None => (None, None, None),
-        };
-        let stage_names: Vec<String> = std::iter::once("scan".to_string())
-            .chain(stages.iter().map(|p| p.name().to_string()))
-            .collect();
-        let needs_payload = stages.iter().any(|p| p.payload_spec().is_some());
-        let first_k = stages
-            .iter()
-            .map(Stage::shortlist)
-            .max()
-            .unwrap_or(0)
-            .max(top_k);
+        let SearchPlan {
+            top_k,
+            first_k,
+            spec,
+            stages,
+            needs_payload,
+            query_sig,
+            upload_payload,
+            report,
+        } = plan;
         // The query's signature: the upload's, or the stored one (what its shard holds encoded).
         let sig = match (query_sig, &opts.id) {
             (Some(s), _) => s,
@@ -300,30 +296,14 @@ impl App {
                     .ok_or_else(|| ApiError::not_found(id))?;
                 self.engine.decode_signature(&b)?
             }
-            (None, None) => {
-                return Err(ApiError::invalid(
-                    "give a stored shape id, or upload a mesh to search by example",
-                ))
-            }
+            (None, None) => return Err(ApiError::invalid("no query given")),
         };
         let query_payload = match (upload_payload, &opts.id) {
             _ if !needs_payload => None,
             (Some(p), _) => Some(p),
             (None, Some(id)) => {
                 let b = self.store.payload(id).await.map_err(ApiError::internal)?;
-                let b = b.ok_or_else(|| {
-                    ApiError::new(
-                        StatusCode::CONFLICT,
-                        "shape.no_payload",
-                        format!(
-                            "shape {id} has no re-ranking payload (its original could not be \
-                             analysed when the payloads were computed)"
-                        ),
-                    )
-                })?;
-                Some(GwPayload::from_bytes(&b).map_err(|e| {
-                    ApiError::internal(format!("stored payload of {id} is unreadable: {e}"))
-                })?)
+                Some(decode_payload(id, &b.ok_or_else(|| no_payload(id))?)?)
             }
             (None, None) => None,
         };
@@ -347,18 +327,7 @@ impl App {
                 if let Some(id) = &opts.id {
                     return Err(ApiError::not_found(id));
                 }
-                return Ok(SearchResult {
-                    hits: Vec::new(),
-                    calibration_epoch: 0,
-                    candidates: 0,
-                    spec: spec_json,
-                    stages: stage_names,
-                    timings: SearchTimings {
-                        analysis: analysis_t,
-                        total_ms: ms(t0),
-                        ..SearchTimings::default()
-                    },
-                });
+                return Ok(report.empty());
             };
             let layout = Layout::of(&cal);
             let query = Encoded::from_signature(&sig, &cal, &layout);
@@ -481,19 +450,7 @@ impl App {
                 Ok((super::env::hits(list, top_k, epoch), ms(t2)))
             })
             .await?;
-        Ok(SearchResult {
-            hits,
-            calibration_epoch: epoch,
-            candidates,
-            spec: spec_json,
-            stages: stage_names,
-            timings: SearchTimings {
-                analysis: analysis_t,
-                scan_ms,
-                rerank_ms,
-                total_ms: ms(t0),
-            },
-        })
+        Ok(report.finish(hits, epoch, candidates, scan_ms, rerank_ms))
     }
 }
 

@@ -264,9 +264,7 @@ impl App {
     pub(super) fn stored_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
         match self.block(self.store.payload(id)).map_err(storage)? {
             None => Ok(None),
-            Some(b) => GwPayload::from_bytes(&b).map(Some).map_err(|e| {
-                ApiError::internal(format!("stored payload of {id} is unreadable: {e}"))
-            }),
+            Some(b) => decode_payload(id, &b).map(Some),
         }
     }
 
@@ -549,19 +547,17 @@ impl App {
         Ok((top_k, spec, spec_json, stages))
     }
 
-    /// Searches with a stored shape (`id`) or an analysed upload (`query_sig`).
-    pub async fn search(
-        self: &Arc<Self>,
-        opts: SearchOptions,
-        query_sig: Option<QueryAnalysis>,
-        deadline: Option<Instant>,
-    ) -> Result<SearchResult, ApiError> {
-        if self.shard.is_some() {
-            return self.sharded_search(opts, query_sig, deadline).await;
-        }
+    /// What both search paths (this process's index, or the shards') settle before the scan:
+    /// the validated options and stages, the query as uploaded (a search by stored id has
+    /// none), and what the answer reports besides its hits.
+    pub(super) fn plan_search(
+        &self,
+        opts: &SearchOptions,
+        query: Option<QueryAnalysis>,
+    ) -> Result<SearchPlan, ApiError> {
         let t0 = Instant::now();
-        let (top_k, spec, spec_json, stages) = self.resolve_options(&opts)?;
-        let (query_sig, upload_payload, analysis_t) = match query_sig {
+        let (top_k, spec, spec_json, stages) = self.resolve_options(opts)?;
+        let (query_sig, upload_payload, analysis) = match query {
             Some((s, p, t)) => (Some(s), p, Some(t)),
             None => (None, None, None),
         };
@@ -570,11 +566,55 @@ impl App {
                 "give a stored shape id, or upload a mesh to search by example",
             ));
         }
-        let app = self.clone();
-        let stage_names: Vec<String> = std::iter::once("scan".to_string())
+        let stage_names = std::iter::once("scan".to_string())
             .chain(stages.iter().map(|p| p.name().to_string()))
             .collect();
         let needs_payload = stages.iter().any(|p| p.payload_spec().is_some());
+        let first_k = stages
+            .iter()
+            .map(Stage::shortlist)
+            .max()
+            .unwrap_or(0)
+            .max(top_k);
+        Ok(SearchPlan {
+            top_k,
+            first_k,
+            spec,
+            stages,
+            needs_payload,
+            query_sig,
+            upload_payload,
+            report: SearchReport {
+                spec_json,
+                stage_names,
+                analysis,
+                t0,
+            },
+        })
+    }
+
+    /// Searches with a stored shape (`id`) or an analysed upload (`query_sig`).
+    pub async fn search(
+        self: &Arc<Self>,
+        opts: SearchOptions,
+        query_sig: Option<QueryAnalysis>,
+        deadline: Option<Instant>,
+    ) -> Result<SearchResult, ApiError> {
+        let plan = self.plan_search(&opts, query_sig)?;
+        if self.shard.is_some() {
+            return self.sharded_search(opts, plan, deadline).await;
+        }
+        let SearchPlan {
+            top_k,
+            first_k,
+            spec,
+            stages,
+            needs_payload,
+            query_sig,
+            upload_payload,
+            report,
+        } = plan;
+        let app = self.clone();
         let n = self.scan.read().unwrap_or_else(|p| p.into_inner()).len();
         let cost = Cost::search(n, &stages);
         let (hits, epoch, candidates, scan_ms, rerank_ms) = self
@@ -603,28 +643,15 @@ impl App {
                 let query_payload = match (&upload_payload, &opts.id) {
                     _ if !needs_payload => None,
                     (Some(p), _) => Some(p.clone()),
-                    (None, Some(id)) => Some(app.stored_payload(id)?.ok_or_else(|| {
-                        ApiError::new(
-                            axum::http::StatusCode::CONFLICT,
-                            "shape.no_payload",
-                            format!(
-                                "shape {id} has no re-ranking payload (its original could not \
-                                 be analysed when the payloads were computed)"
-                            ),
-                        )
-                    })?),
+                    (None, Some(id)) => {
+                        Some(app.stored_payload(id)?.ok_or_else(|| no_payload(id))?)
+                    }
                     (None, None) => None,
                 };
                 let exclude = if opts.include_self { None } else { self_at };
                 let filter = s.tag_filter(&opts.tags);
                 let keep = |at: usize| Some(at) != exclude && s.has_tags(at, &filter);
                 let candidates = (0..s.len()).filter(|&at| keep(at)).count();
-                let first_k = stages
-                    .iter()
-                    .map(Stage::shortlist)
-                    .max()
-                    .unwrap_or(0)
-                    .max(top_k);
                 cancel.check()?;
                 let t1 = Instant::now();
                 let q = Query::new(&spec, s.corpus().layout());
@@ -663,20 +690,85 @@ impl App {
                 ))
             })
             .await?;
-        Ok(SearchResult {
+        Ok(report.finish(hits, epoch, candidates, scan_ms, rerank_ms))
+    }
+}
+
+/// A search settled before its scan ([`App::plan_search`]).
+pub(super) struct SearchPlan {
+    /// Hits answered.
+    pub(super) top_k: usize,
+    /// How many the scan keeps: the stages' largest shortlist, at least `top_k`.
+    pub(super) first_k: usize,
+    /// The scan's query spec.
+    pub(super) spec: QuerySpec,
+    /// The re-ranking stages, in order.
+    pub(super) stages: Vec<Stage>,
+    /// Some stage re-ranks by payload, so the query's payload is needed.
+    pub(super) needs_payload: bool,
+    /// The uploaded query's signature (none for a search by stored id).
+    pub(super) query_sig: Option<Signature>,
+    /// The uploaded query's payload, when it was computed.
+    pub(super) upload_payload: Option<GwPayload>,
+    /// What the answer reports besides its hits.
+    pub(super) report: SearchReport,
+}
+
+/// What a search's answer reports besides its hits and counts.
+pub(super) struct SearchReport {
+    spec_json: serde_json::Value,
+    stage_names: Vec<String>,
+    analysis: Option<Timings>,
+    t0: Instant,
+}
+
+impl SearchReport {
+    /// The answer, its total time measured from the plan.
+    pub(super) fn finish(
+        self,
+        hits: Vec<Hit>,
+        calibration_epoch: u64,
+        candidates: usize,
+        scan_ms: f64,
+        rerank_ms: f64,
+    ) -> SearchResult {
+        SearchResult {
             hits,
-            calibration_epoch: epoch,
+            calibration_epoch,
             candidates,
-            spec: spec_json,
-            stages: stage_names,
+            spec: self.spec_json,
+            stages: self.stage_names,
             timings: SearchTimings {
-                analysis: analysis_t,
+                analysis: self.analysis,
                 scan_ms,
                 rerank_ms,
-                total_ms: ms(t0),
+                total_ms: ms(self.t0),
             },
-        })
+        }
     }
+
+    /// The answer on an index with no calibration yet: no hits.
+    pub(super) fn empty(self) -> SearchResult {
+        self.finish(Vec::new(), 0, 0, 0.0, 0.0)
+    }
+}
+
+/// A stored shape's re-ranking payload, decoded.
+pub(super) fn decode_payload(id: &str, bytes: &[u8]) -> Result<GwPayload, ApiError> {
+    GwPayload::from_bytes(bytes)
+        .map_err(|e| ApiError::internal(format!("stored payload of {id} is unreadable: {e}")))
+}
+
+/// The answer when a stage needs the stored query's payload and it has none.
+pub(super) fn no_payload(id: &str) -> ApiError {
+    ApiError::new(
+        axum::http::StatusCode::CONFLICT,
+        "shape.no_payload",
+        format!(
+            "shape {id} has no re-ranking payload (its original could not be analysed when the \
+             payloads were computed)"
+        ),
+    )
 }
 
 /// The message of a validation error (without the error kind's prefix).
