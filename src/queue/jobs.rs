@@ -2,7 +2,9 @@
 //! kept in the same PostgreSQL database as the shapes. Every statement is parameterised.
 
 use crate::index::store::{now_unix_ms, storage_err};
-use crate::storage::{format_id, parse_id, PgStore};
+use crate::storage::pg_migrate::{pg, Prepared};
+use crate::storage::postgres::key;
+use crate::storage::{format_id, PgStore};
 use crate::{Error, Result};
 use serde::Serialize;
 
@@ -99,14 +101,6 @@ pub struct JobStore {
     pg: PgStore,
 }
 
-fn pg(what: &'static str) -> impl Fn(tokio_postgres::Error) -> Error {
-    move |e| storage_err(format!("postgres: {what}: {e}"))
-}
-
-fn key(id: &str) -> Option<i64> {
-    parse_id(id).and_then(|n| i64::try_from(n).ok())
-}
-
 fn now() -> i64 {
     i64::try_from(now_unix_ms()).unwrap_or(i64::MAX)
 }
@@ -133,14 +127,13 @@ impl JobStore {
         let t = now();
         for _ in 0..5 {
             let ins = c
-                .prepare_cached(
+                .prepared(
                     "INSERT INTO jobs (id, sha256, name, tags, format_hint, upload, state, \
                      created_unix_ms, updated_unix_ms) \
                      VALUES (nextval('shape_id_seq'), $1, $2, $3, $4, $5, 'pending', $6, $6) \
                      ON CONFLICT (sha256) DO NOTHING RETURNING id",
                 )
-                .await
-                .map_err(pg("preparing"))?;
+                .await?;
             if let Some(row) = c
                 .query_opt(&ins, &[&sha, &name, &tags, &format_hint, &upload, &t])
                 .await
@@ -154,14 +147,13 @@ impl JobStore {
             }
             // The same bytes have a job. Reset it when its retries ran out on a server fault.
             let reset = c
-                .prepare_cached(
+                .prepared(
                     "UPDATE jobs SET state = 'pending', attempts = 0, upload = $2, \
                      error_status = NULL, error_code = NULL, error_message = NULL, \
                      updated_unix_ms = $3 \
                      WHERE sha256 = $1 AND state = 'failed' AND error_status >= 500 RETURNING id",
                 )
-                .await
-                .map_err(pg("preparing"))?;
+                .await?;
             if let Some(row) = c
                 .query_opt(&reset, &[&sha, &upload, &t])
                 .await
@@ -174,9 +166,8 @@ impl JobStore {
                 });
             }
             let sel = c
-                .prepare_cached("SELECT id, state FROM jobs WHERE sha256 = $1")
-                .await
-                .map_err(pg("preparing"))?;
+                .prepared("SELECT id, state FROM jobs WHERE sha256 = $1")
+                .await?;
             if let Some(row) = c
                 .query_opt(&sel, &[&sha])
                 .await
@@ -202,12 +193,11 @@ impl JobStore {
         };
         let c = self.pg.client().await?;
         let st = c
-            .prepare_cached(
+            .prepared(
                 "SELECT state, attempts, shape_id, error_status, error_code, error_message, \
                  created_unix_ms, updated_unix_ms FROM jobs WHERE id = $1",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let Some(row) = c.query_opt(&st, &[&k]).await.map_err(pg("reading a job"))? else {
             return Ok(None);
         };
@@ -241,12 +231,11 @@ impl JobStore {
         };
         let c = self.pg.client().await?;
         let st = c
-            .prepare_cached(
+            .prepared(
                 "UPDATE jobs SET attempts = attempts + 1, updated_unix_ms = $2 WHERE id = $1 \
                  RETURNING sha256, name, tags, format_hint, upload, state, attempts",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let Some(row) = c
             .query_opt(&st, &[&k, &now()])
             .await
@@ -280,12 +269,11 @@ impl JobStore {
         };
         let c = self.pg.client().await?;
         let st = c
-            .prepare_cached(
+            .prepared(
                 "UPDATE jobs SET state = 'done', shape_id = $2, upload = NULL, \
                  updated_unix_ms = $3 WHERE id = $1",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let n = c
             .execute(&st, &[&k, &s, &now()])
             .await
@@ -300,12 +288,11 @@ impl JobStore {
         };
         let c = self.pg.client().await?;
         let st = c
-            .prepare_cached(
+            .prepared(
                 "UPDATE jobs SET state = 'failed', error_status = $2, error_code = $3, \
                  error_message = $4, updated_unix_ms = $5 WHERE id = $1 AND state = 'pending'",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let n = c
             .execute(
                 &st,
@@ -327,12 +314,11 @@ impl JobStore {
         let cutoff = now().saturating_sub(i64::try_from(older_than_ms).unwrap_or(i64::MAX));
         let c = self.pg.client().await?;
         let st = c
-            .prepare_cached(
+            .prepared(
                 "SELECT id FROM jobs WHERE state = 'pending' AND updated_unix_ms < $1 \
                  ORDER BY id LIMIT $2",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let rows = c
             .query(&st, &[&cutoff, &limit])
             .await
@@ -350,9 +336,8 @@ impl JobStore {
         };
         let c = self.pg.client().await?;
         let st = c
-            .prepare_cached("UPDATE jobs SET updated_unix_ms = $2 WHERE id = $1")
-            .await
-            .map_err(pg("preparing"))?;
+            .prepared("UPDATE jobs SET updated_unix_ms = $2 WHERE id = $1")
+            .await?;
         c.execute(&st, &[&k, &now()])
             .await
             .map_err(pg("touching a job"))?;

@@ -59,7 +59,9 @@ pub struct MigrateReport {
     pub applied: Vec<&'static str>,
 }
 
-fn pg_err(what: &str) -> impl Fn(tokio_postgres::Error) -> Error + '_ {
+/// The error of a failed statement: what was being done and the server's message
+/// ([`describe`]).
+pub(crate) fn pg(what: &str) -> impl Fn(tokio_postgres::Error) -> Error + '_ {
     move |e| storage_err(format!("postgres: {what}: {}", describe(&e)))
 }
 
@@ -71,19 +73,32 @@ pub(crate) fn describe(e: &tokio_postgres::Error) -> String {
     }
 }
 
+/// A statement from the connection's cache, prepared on first use: on a pooled connection or
+/// inside its transaction.
+pub(crate) trait Prepared {
+    /// The cached statement of `sql`.
+    async fn prepared(&self, sql: &str) -> Result<tokio_postgres::Statement>;
+}
+
+impl<C: deadpool_postgres::GenericClient> Prepared for C {
+    async fn prepared(&self, sql: &str) -> Result<tokio_postgres::Statement> {
+        self.prepare_cached(sql).await.map_err(pg("preparing"))
+    }
+}
+
 /// The version recorded in the database (`None`: no `schema_version` table).
 pub async fn current_version(client: &Client) -> Result<Option<u32>> {
     let row = client
         .query_one("SELECT to_regclass('schema_version') IS NOT NULL", &[])
         .await
-        .map_err(pg_err("reading the schema version"))?;
+        .map_err(pg("reading the schema version"))?;
     if !row.get::<_, bool>(0) {
         return Ok(None);
     }
     let row = client
         .query_one("SELECT coalesce(max(version), 0) FROM schema_version", &[])
         .await
-        .map_err(pg_err("reading the schema version"))?;
+        .map_err(pg("reading the schema version"))?;
     let v: i32 = row.get(0);
     Ok(Some(v.max(0) as u32))
 }
@@ -93,7 +108,7 @@ async fn has_our_tables(client: &Client) -> Result<bool> {
     let row = client
         .query_one("SELECT to_regclass('shapes') IS NOT NULL", &[])
         .await
-        .map_err(pg_err("inspecting the database"))?;
+        .map_err(pg("inspecting the database"))?;
     Ok(row.get(0))
 }
 
@@ -164,10 +179,10 @@ pub async fn migrate_with(client: &mut Client, migrations: &[Migration]) -> Resu
         let tx = client
             .transaction()
             .await
-            .map_err(pg_err("starting a migration"))?;
+            .map_err(pg("starting a migration"))?;
         tx.execute("SELECT pg_advisory_xact_lock($1)", &[&MIGRATION_LOCK])
             .await
-            .map_err(pg_err("taking the migration lock"))?;
+            .map_err(pg("taking the migration lock"))?;
         tx.batch_execute(
             "CREATE TABLE IF NOT EXISTS schema_version (
                  version    integer     PRIMARY KEY,
@@ -175,12 +190,12 @@ pub async fn migrate_with(client: &mut Client, migrations: &[Migration]) -> Resu
                  applied_at timestamptz NOT NULL DEFAULT now())",
         )
         .await
-        .map_err(pg_err("creating schema_version"))?;
+        .map_err(pg("creating schema_version"))?;
         // Re-read under the lock: another node may have applied it meanwhile.
         let now: i32 = tx
             .query_one("SELECT coalesce(max(version), 0) FROM schema_version", &[])
             .await
-            .map_err(pg_err("reading the schema version"))?
+            .map_err(pg("reading the schema version"))?
             .get(0);
         let now = now.max(0) as u32;
         if now > target {
@@ -197,7 +212,7 @@ pub async fn migrate_with(client: &mut Client, migrations: &[Migration]) -> Resu
             &[&(m.version as i32), &m.name],
         )
         .await
-        .map_err(pg_err("recording the schema version"))?;
+        .map_err(pg("recording the schema version"))?;
         tx.commit().await.map_err(|e| {
             storage_err(format!("postgres: committing {}: {}", m.name, describe(&e)))
         })?;

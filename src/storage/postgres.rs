@@ -21,7 +21,7 @@
 //!   it; a lock dropped without commit discards its connection (so no half-open transaction goes
 //!   back to the pool).
 
-use super::pg_migrate::{self, describe, PG_SCHEMA_VERSION};
+use super::pg_migrate::{self, describe, pg, Prepared, PG_SCHEMA_VERSION};
 use super::{
     check_meta_key, format_id, parse_cursor, parse_id, Backend, CalibrationLock, InsertOutcome,
     LockHolder, NewShape, Page, ShapeStore, StoredCalibration,
@@ -76,10 +76,6 @@ fn io_runtime() -> Result<tokio::runtime::Handle> {
     Ok(IO.get_or_init(|| handle).clone())
 }
 
-fn pg(what: &'static str) -> impl Fn(tokio_postgres::Error) -> Error {
-    move |e| storage_err(format!("postgres: {what}: {}", describe(&e)))
-}
-
 fn parse_url(url: &str) -> Result<tokio_postgres::Config> {
     url.parse::<tokio_postgres::Config>()
         .map_err(|e| Error::InvalidArgument(format!("PostgreSQL URL: {e}")))
@@ -106,7 +102,7 @@ pub async fn migrate_url(url: &str) -> Result<pg_migrate::MigrateReport> {
 }
 
 /// An id as the `bigint` key; `None` when malformed or beyond the sequence's range.
-fn key(id: &str) -> Option<i64> {
+pub(crate) fn key(id: &str) -> Option<i64> {
     parse_id(id).and_then(|n| i64::try_from(n).ok())
 }
 
@@ -179,7 +175,7 @@ impl PgStore {
         } else {
             "SELECT epoch, calibrated_on, body::text FROM calibration WHERE singleton FOR UPDATE"
         };
-        let stmt = c.prepare_cached(sql).await.map_err(pg("preparing"))?;
+        let stmt = c.prepared(sql).await?;
         let row = c
             .query_opt(&stmt, &[])
             .await
@@ -252,12 +248,11 @@ impl LockHolder for PgLock {
             .to_string();
         let c = self.client.as_ref().expect("held until finished");
         let stmt = c
-            .prepare_cached(
+            .prepared(
                 "UPDATE calibration SET epoch = $1, calibrated_on = $2, body = $3::text::json, \
                  updated_at = now() WHERE singleton AND epoch < $1",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let epoch = to_i64(cal.epoch, "epoch")?;
         let n = c
             .execute(
@@ -294,10 +289,7 @@ impl ShapeStore for PgStore {
 
     async fn new_id(&self) -> Result<String> {
         let c = self.client().await?;
-        let stmt = c
-            .prepare_cached("SELECT nextval('shape_id_seq')")
-            .await
-            .map_err(pg("preparing"))?;
+        let stmt = c.prepared("SELECT nextval('shape_id_seq')").await?;
         let n: i64 = c
             .query_one(&stmt, &[])
             .await
@@ -321,14 +313,9 @@ impl ShapeStore for PgStore {
         // A conflict with a row deleted before we could read it: try again (bounded).
         for _ in 0..5 {
             let tx = c.transaction().await.map_err(pg("BEGIN"))?;
-            let ins = tx
-                .prepare_cached(
-                    "INSERT INTO shapes (id, sha256, name, tags, spec_key, created_unix_ms, record) \
+            let ins = tx.prepared("INSERT INTO shapes (id, sha256, name, tags, spec_key, created_unix_ms, record) \
                      VALUES ($1, $2, $3, $4, $5, $6, $7::text::json) \
-                     ON CONFLICT (sha256) DO NOTHING RETURNING id",
-                )
-                .await
-                .map_err(pg("preparing"))?;
+                     ON CONFLICT (sha256) DO NOTHING RETURNING id",).await?;
             let row = tx
                 .query_opt(
                     &ins,
@@ -346,9 +333,8 @@ impl ShapeStore for PgStore {
                 .map_err(pg("inserting a shape"))?;
             if row.is_none() {
                 let sel = tx
-                    .prepare_cached("SELECT id FROM shapes WHERE sha256 = $1")
-                    .await
-                    .map_err(pg("preparing"))?;
+                    .prepared("SELECT id FROM shapes WHERE sha256 = $1")
+                    .await?;
                 let existing = tx
                     .query_opt(&sel, &[&sha])
                     .await
@@ -378,7 +364,7 @@ impl ShapeStore for PgStore {
                 ),
             ] {
                 if let Some(b) = bytes {
-                    let stmt = tx.prepare_cached(sql).await.map_err(pg("preparing"))?;
+                    let stmt = tx.prepared(sql).await?;
                     tx.execute(&stmt, &[&id, &b.as_slice()])
                         .await
                         .map_err(pg("inserting shape bytes"))?;
@@ -395,9 +381,8 @@ impl ShapeStore for PgStore {
     async fn id_for_hash(&self, sha256: &[u8; 32]) -> Result<Option<String>> {
         let c = self.client().await?;
         let stmt = c
-            .prepare_cached("SELECT id FROM shapes WHERE sha256 = $1")
-            .await
-            .map_err(pg("preparing"))?;
+            .prepared("SELECT id FROM shapes WHERE sha256 = $1")
+            .await?;
         let sha: &[u8] = sha256;
         Ok(c.query_opt(&stmt, &[&sha])
             .await
@@ -408,10 +393,7 @@ impl ShapeStore for PgStore {
     async fn delete(&self, id: &str) -> Result<bool> {
         let Some(id) = key(id) else { return Ok(false) };
         let c = self.client().await?;
-        let stmt = c
-            .prepare_cached("DELETE FROM shapes WHERE id = $1")
-            .await
-            .map_err(pg("preparing"))?;
+        let stmt = c.prepared("DELETE FROM shapes WHERE id = $1").await?;
         Ok(c.execute(&stmt, &[&id]).await.map_err(pg("deleting"))? > 0)
     }
 
@@ -419,9 +401,8 @@ impl ShapeStore for PgStore {
         let Some(id) = key(id) else { return Ok(None) };
         let c = self.client().await?;
         let stmt = c
-            .prepare_cached("SELECT record::text FROM shapes WHERE id = $1")
-            .await
-            .map_err(pg("preparing"))?;
+            .prepared("SELECT record::text FROM shapes WHERE id = $1")
+            .await?;
         c.query_opt(&stmt, &[&id])
             .await
             .map_err(pg("reading a record"))?
@@ -435,13 +416,12 @@ impl ShapeStore for PgStore {
             .unwrap_or(-1);
         let c = self.client().await?;
         let stmt = c
-            .prepare_cached(
+            .prepared(
                 "SELECT record::text FROM shapes \
                  WHERE id > $1 AND ($2::text IS NULL OR tags @> ARRAY[$2::text]) \
                  ORDER BY id LIMIT $3",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let fetch = i64::try_from(limit).unwrap_or(i64::MAX - 1) + 1;
         let rows = c
             .query(&stmt, &[&after, &tag, &fetch])
@@ -487,12 +467,11 @@ impl ShapeStore for PgStore {
         let tx = c.transaction().await.map_err(pg("BEGIN"))?;
         // The content hash must not change: it is what the record is the record of.
         let upd = tx
-            .prepare_cached(
+            .prepared(
                 "UPDATE shapes SET record = $2::text::json, spec_key = $3, name = $4, tags = $5 \
                  WHERE id = $1 AND sha256 = $6",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let n = tx
             .execute(
                 &upd,
@@ -512,20 +491,18 @@ impl ShapeStore for PgStore {
             return Ok(false);
         }
         let sig = tx
-            .prepare_cached("UPDATE signatures SET content = $2 WHERE id = $1")
-            .await
-            .map_err(pg("preparing"))?;
+            .prepared("UPDATE signatures SET content = $2 WHERE id = $1")
+            .await?;
         tx.execute(&sig, &[&id, &signature])
             .await
             .map_err(pg("replacing a signature"))?;
         if let Some(p) = payload {
             let pay = tx
-                .prepare_cached(
+                .prepared(
                     "INSERT INTO payloads (id, content) VALUES ($1, $2) \
                      ON CONFLICT (id) DO UPDATE SET content = EXCLUDED.content",
                 )
-                .await
-                .map_err(pg("preparing"))?;
+                .await?;
             tx.execute(&pay, &[&id, &p])
                 .await
                 .map_err(pg("replacing a payload"))?;
@@ -544,12 +521,11 @@ impl ShapeStore for PgStore {
             .unwrap_or(-1);
         let c = self.client().await?;
         let stmt = c
-            .prepare_cached(
+            .prepared(
                 "SELECT s.record::text, g.content FROM shapes s JOIN signatures g USING (id) \
                  WHERE s.id > $1 ORDER BY s.id LIMIT $2",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         let lim = i64::try_from(limit).unwrap_or(i64::MAX);
         c.query(&stmt, &[&after, &lim])
             .await
@@ -582,11 +558,8 @@ impl ShapeStore for PgStore {
     async fn calibration(&self) -> Result<Option<StoredCalibration>> {
         let c = self.client().await?;
         let stmt = c
-            .prepare_cached(
-                "SELECT epoch, calibrated_on, body::text FROM calibration WHERE singleton",
-            )
-            .await
-            .map_err(pg("preparing"))?;
+            .prepared("SELECT epoch, calibrated_on, body::text FROM calibration WHERE singleton")
+            .await?;
         let row = c
             .query_one(&stmt, &[])
             .await
@@ -607,10 +580,7 @@ impl ShapeStore for PgStore {
     async fn meta_get(&self, key: &str) -> Result<Option<Vec<u8>>> {
         check_meta_key(key)?;
         let c = self.client().await?;
-        let stmt = c
-            .prepare_cached("SELECT value FROM meta WHERE key = $1")
-            .await
-            .map_err(pg("preparing"))?;
+        let stmt = c.prepared("SELECT value FROM meta WHERE key = $1").await?;
         Ok(c.query_opt(&stmt, &[&key])
             .await
             .map_err(pg("reading meta"))?
@@ -621,12 +591,11 @@ impl ShapeStore for PgStore {
         check_meta_key(key)?;
         let c = self.client().await?;
         let stmt = c
-            .prepare_cached(
+            .prepared(
                 "INSERT INTO meta (key, value) VALUES ($1, $2) \
                  ON CONFLICT (key) DO UPDATE SET value = EXCLUDED.value",
             )
-            .await
-            .map_err(pg("preparing"))?;
+            .await?;
         c.execute(&stmt, &[&key, &value])
             .await
             .map_err(pg("writing meta"))?;
@@ -638,7 +607,7 @@ impl PgStore {
     async fn bytes(&self, sql: &'static str, id: &str) -> Result<Option<Vec<u8>>> {
         let Some(id) = key(id) else { return Ok(None) };
         let c = self.client().await?;
-        let stmt = c.prepare_cached(sql).await.map_err(pg("preparing"))?;
+        let stmt = c.prepared(sql).await?;
         Ok(c.query_opt(&stmt, &[&id])
             .await
             .map_err(pg("reading bytes"))?
