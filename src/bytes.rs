@@ -1,12 +1,23 @@
 //! Little-endian binary encoding shared by the stored formats: signatures
 //! ([`crate::signature::Signature::to_bytes`]), re-ranking payloads
-//! ([`crate::rerank::GwPayload::to_bytes`]) and the evaluation cache. Each format keeps its own
+//! ([`crate::rerank::GwPayload::to_bytes`]), the evaluation cache, and the shards' messages
+//! ([`crate::queue::shard`]). Each format keeps its own
 //! layout and error messages; this module only reads and writes the primitive values, checking
 //! every length against the input (no allocation sized by an untrusted count before the bytes
 //! are known to be there).
 //!
 //! Why by hand: the formats are a few fixed fields and long f64/f32 arrays; a serialisation
 //! crate would add a dependency and a layout of its own for what is a dozen lines.
+
+/// Appends `v` (2 bytes, little endian).
+pub(crate) fn put_u16(w: &mut Vec<u8>, v: u16) {
+    w.extend_from_slice(&v.to_le_bytes());
+}
+
+/// Appends `v` (4 bytes, little endian).
+pub(crate) fn put_u32(w: &mut Vec<u8>, v: u32) {
+    w.extend_from_slice(&v.to_le_bytes());
+}
 
 /// Appends `v` (8 bytes, little endian).
 pub(crate) fn put_u64(w: &mut Vec<u8>, v: u64) {
@@ -55,6 +66,26 @@ impl<'a> ByteReader<'a> {
         let s = self.b.get(self.pos..end)?;
         self.pos = end;
         Some(s)
+    }
+
+    /// The number of bytes not read yet.
+    pub(crate) fn remaining(&self) -> usize {
+        self.b.len() - self.pos
+    }
+
+    /// One byte.
+    pub(crate) fn u8(&mut self) -> Option<u8> {
+        Some(self.take(1)?[0])
+    }
+
+    /// A little-endian `u16`.
+    pub(crate) fn u16(&mut self) -> Option<u16> {
+        Some(u16::from_le_bytes(self.take(2)?.try_into().ok()?))
+    }
+
+    /// A little-endian `u32`.
+    pub(crate) fn u32(&mut self) -> Option<u32> {
+        Some(u32::from_le_bytes(self.take(4)?.try_into().ok()?))
     }
 
     /// A little-endian `u64`.
@@ -117,6 +148,21 @@ mod tests {
         assert_eq!(r.f32s(1), Some(vec![2.5]));
         assert!(r.at_end());
         assert_eq!(r.u64(), None);
+        let mut w = Vec::new();
+        put_u16(&mut w, 0xBEEF);
+        put_u32(&mut w, 0xDEAD_BEEF);
+        w.push(9);
+        let mut r = ByteReader::new(&w);
+        assert_eq!(r.remaining(), 7);
+        assert_eq!(r.u16(), Some(0xBEEF));
+        assert_eq!(r.u32(), Some(0xDEAD_BEEF));
+        assert_eq!(r.remaining(), 1);
+        assert_eq!(r.u16(), None, "short input");
+        assert_eq!(r.u8(), Some(9));
+        assert_eq!((r.u8(), r.remaining()), (None, 0));
+        let mut w = Vec::new();
+        put_u64(&mut w, 7);
+        put_f64(&mut w, -0.5);
         let mut r = ByteReader::new(&w[..5]);
         assert_eq!(r.f64s(usize::MAX), None, "overflowing count");
         assert_eq!(r.u64(), None, "short input");

@@ -22,6 +22,7 @@
 //! shards' local top-`k`s under the same order, and a single node's scan orders ties by
 //! position, which is id order (ids are fixed-width hex, sorted).
 
+use crate::bytes::{put_u16, put_u32, put_u64, ByteReader};
 use crate::ranking::QuerySpec;
 use crate::search::corpus::Encoded;
 use crate::{Error, Result};
@@ -172,13 +173,13 @@ impl W {
         self.0.push(x);
     }
     fn u16(&mut self, x: u16) {
-        self.0.extend_from_slice(&x.to_le_bytes());
+        put_u16(&mut self.0, x);
     }
     fn u32(&mut self, x: u32) {
-        self.0.extend_from_slice(&x.to_le_bytes());
+        put_u32(&mut self.0, x);
     }
     fn u64(&mut self, x: u64) {
-        self.0.extend_from_slice(&x.to_le_bytes());
+        put_u64(&mut self.0, x);
     }
     fn len(&mut self, n: usize) {
         self.u32(u32::try_from(n).expect("length fits 32 bits"));
@@ -214,7 +215,7 @@ impl W {
     }
 }
 
-struct R<'a>(&'a [u8]);
+struct R<'a>(ByteReader<'a>);
 
 fn short() -> Error {
     Error::Queue("shard message: truncated".into())
@@ -222,29 +223,24 @@ fn short() -> Error {
 
 impl<'a> R<'a> {
     fn take(&mut self, n: usize) -> Result<&'a [u8]> {
-        if self.0.len() < n {
-            return Err(short());
-        }
-        let (a, b) = self.0.split_at(n);
-        self.0 = b;
-        Ok(a)
+        self.0.take(n).ok_or_else(short)
     }
     fn u8(&mut self) -> Result<u8> {
-        Ok(self.take(1)?[0])
+        self.0.u8().ok_or_else(short)
     }
     fn u16(&mut self) -> Result<u16> {
-        Ok(u16::from_le_bytes(self.take(2)?.try_into().expect("2")))
+        self.0.u16().ok_or_else(short)
     }
     fn u32(&mut self) -> Result<u32> {
-        Ok(u32::from_le_bytes(self.take(4)?.try_into().expect("4")))
+        self.0.u32().ok_or_else(short)
     }
     fn u64(&mut self) -> Result<u64> {
-        Ok(u64::from_le_bytes(self.take(8)?.try_into().expect("8")))
+        self.0.u64().ok_or_else(short)
     }
     /// A length whose items (of `item` bytes at least) fit in what is left.
     fn len(&mut self, item: usize) -> Result<usize> {
         let n = self.u32()? as usize;
-        if n.saturating_mul(item) > self.0.len() {
+        if n.saturating_mul(item) > self.0.remaining() {
             return Err(short());
         }
         Ok(n)
@@ -322,7 +318,7 @@ pub fn encode_request(req: &SearchRequest, query: &Encoded) -> Vec<u8> {
 
 /// Reads a request.
 pub fn decode_request(b: &[u8]) -> Result<(SearchRequest, Encoded)> {
-    let mut r = R(b);
+    let mut r = R(ByteReader::new(b));
     let n = r.len(1)?;
     let req: SearchRequest = serde_json::from_slice(r.take(n)?)
         .map_err(|e| Error::Queue(format!("shard request: {e}")))?;
@@ -381,7 +377,7 @@ pub fn encode_reply(rep: &Reply) -> Vec<u8> {
 
 /// Reads one reply message.
 pub fn decode_reply(b: &[u8]) -> Result<Reply> {
-    let mut r = R(b);
+    let mut r = R(ByteReader::new(b));
     Ok(match r.u8()? {
         PART => {
             let shard = r.u32()?;
@@ -750,5 +746,21 @@ mod tests {
         }
         assert!(decode_reply(&[0, 1]).is_err());
         assert!(decode_request(&[255, 255, 255, 255]).is_err());
+        // Every cut short message is an error, never a panic nor a shorter message.
+        let whole = encode_request(&req, &q);
+        for n in 0..whole.len() {
+            assert!(decode_request(&whole[..n]).is_err(), "request cut at {n}");
+        }
+        let one = encode_reply(&Reply::Part {
+            shard: 0,
+            seq: 0,
+            last: true,
+            matched: 1,
+            hits: hits[..1].to_vec(),
+        });
+        assert!(decode_reply(&one).is_ok());
+        for n in 0..one.len() {
+            assert!(decode_reply(&one[..n]).is_err(), "reply cut at {n}");
+        }
     }
 }
