@@ -15,6 +15,7 @@
 //! one at a time, so a recalibration never holds more than that many signatures.
 
 use super::load::moved;
+use super::ms;
 use super::sample::Sample;
 use super::state::App;
 use crate::queue::Change;
@@ -28,10 +29,6 @@ use std::time::Instant;
 
 /// Records per page when the stored shapes are listed for the calibration sample.
 const LIST_PAGE: usize = 1000;
-
-fn ms(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() * 1e3
-}
 
 impl App {
     /// True when the index size moved by more than the configured fraction since the last

@@ -60,6 +60,11 @@ pub async fn serve(cfg: ServerConfig) -> Result<()> {
     running.shutdown().await
 }
 
+/// Milliseconds since `t`.
+pub(crate) fn ms(t: std::time::Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
 /// Installs a tracing subscriber (RUST_LOG or `info`), text or JSON. No-op if one is set.
 pub fn init_tracing(format: &str) {
     use tracing_subscriber::EnvFilter;

@@ -6,6 +6,7 @@
 use super::admission::Cancel;
 use super::config::ServerConfig;
 use super::limits::stored_original;
+use super::ms;
 use super::problem::ApiError;
 use super::state::{Timings, Upload};
 use crate::index::{Engine, ShapeRecord};
@@ -54,10 +55,6 @@ impl Prepared {
             self.reencoded_from,
         )
     }
-}
-
-fn ms(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() * 1e3
 }
 
 /// Prepare + spectrum + signature (+ re-ranking payload when `with_payload`) of a parsed

@@ -26,6 +26,7 @@
 
 use super::admission::{Cancel, Cost};
 use super::env::{gw_scores, pairwise, rescore};
+use super::ms;
 use super::problem::ApiError;
 use super::state::{
     decode_payload, no_payload, App, Hitting, SearchOptions, SearchPlan, SearchResult,
@@ -74,10 +75,6 @@ impl Sharding {
     pub(super) fn set_total(&self, n: usize) {
         self.total.store(n, Ordering::Release);
     }
-}
-
-fn ms(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() * 1e3
 }
 
 /// The tie-break key of a candidate: its id's number (ids are fixed-width hex counters, so this

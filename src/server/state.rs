@@ -5,6 +5,7 @@ use super::admission::{Admission, Cancel, Cost};
 use super::config::ServerConfig;
 use super::env::ServerEnv;
 use super::metrics as m;
+use super::ms;
 use super::problem::ApiError;
 use crate::index::{Engine, ScanIndex, ShapeRecord};
 use crate::mesh::read::{read_mesh, Format, ReadLimits};
@@ -191,10 +192,6 @@ pub struct SearchTimings {
     pub rerank_ms: f64,
     /// End to end.
     pub total_ms: f64,
-}
-
-fn ms(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() * 1e3
 }
 
 fn storage(e: crate::Error) -> ApiError {
