@@ -125,7 +125,10 @@ pub struct EigenOptions {
     pub allow_fewer: bool,
     /// Checked before each block of operator applications of the Krylov solver (a block solve:
     /// well under a second even at the largest meshes a server accepts); once it fires the
-    /// solve ends with [`Error::Interrupted`]. Not serialised.
+    /// solve ends with [`Error::Interrupted`]. Not serialised. Set in
+    /// [`crate::spectrum::AnalyzeOptions::eigen`], it governs the whole analysis: it is also
+    /// checked after the preparation ([`crate::spectrum::analyze_prepared`]), and
+    /// [`crate::signature::sign`] checks it in the signatures too.
     #[serde(skip)]
     pub interrupt: crate::error::Interrupt,
 }
