@@ -758,9 +758,20 @@ mod tests {
             matched: 1,
             hits: hits[..1].to_vec(),
         });
-        assert!(decode_reply(&one).is_ok());
-        for n in 0..one.len() {
-            assert!(decode_reply(&one[..n]).is_err(), "reply cut at {n}");
+        let others = [
+            Reply::Mismatch { shard: 3, epoch: 9 },
+            Reply::Failed {
+                shard: 0,
+                status: 503,
+                code: "server.busy".into(),
+                message: "x".into(),
+            },
+        ];
+        for whole in std::iter::once(one).chain(others.iter().map(encode_reply)) {
+            assert!(decode_reply(&whole).is_ok());
+            for n in 0..whole.len() {
+                assert!(decode_reply(&whole[..n]).is_err(), "reply cut at {n}");
+            }
         }
     }
 }

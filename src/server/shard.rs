@@ -293,7 +293,7 @@ impl App {
                     .ok_or_else(|| ApiError::not_found(id))?;
                 self.engine.decode_signature(&b)?
             }
-            (None, None) => return Err(ApiError::invalid("no query given")),
+            (None, None) => return Err(ApiError::internal("a search without a query")),
         };
         let query_payload = match (upload_payload, &opts.id) {
             _ if !needs_payload => None,

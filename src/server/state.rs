@@ -635,7 +635,7 @@ impl App {
                         let at = s.position(id).ok_or_else(|| ApiError::not_found(id))?;
                         (s.corpus().encoded(at), Some(at))
                     }
-                    (None, None) => return Err(ApiError::invalid("no query given")),
+                    (None, None) => return Err(ApiError::internal("a search without a query")),
                 };
                 let query_payload = match (&upload_payload, &opts.id) {
                     _ if !needs_payload => None,

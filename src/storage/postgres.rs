@@ -313,9 +313,13 @@ impl ShapeStore for PgStore {
         // A conflict with a row deleted before we could read it: try again (bounded).
         for _ in 0..5 {
             let tx = c.transaction().await.map_err(pg("BEGIN"))?;
-            let ins = tx.prepared("INSERT INTO shapes (id, sha256, name, tags, spec_key, created_unix_ms, record) \
-                     VALUES ($1, $2, $3, $4, $5, $6, $7::text::json) \
-                     ON CONFLICT (sha256) DO NOTHING RETURNING id",).await?;
+            let ins = tx
+                .prepared(
+                    "INSERT INTO shapes (id, sha256, name, tags, spec_key, created_unix_ms, \
+                     record) VALUES ($1, $2, $3, $4, $5, $6, $7::text::json) \
+                     ON CONFLICT (sha256) DO NOTHING RETURNING id",
+                )
+                .await?;
             let row = tx
                 .query_opt(
                     &ins,
