@@ -1637,13 +1637,53 @@ fn migrate_backs_up_then_upgrades() {
     );
 }
 
-/// Version 1 → 2 computes every shape's re-ranking payload from its stored original: the
-/// payloads equal those written at ingest, bit for bit, and the server opens the result.
-#[test]
-fn migrate_from_version_1_computes_payloads() {
-    let dir = tempfile::tempdir().unwrap();
-    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
-    let shapes: Vec<String> = [icosphere(2), torus(1.0, 0.35, 20, 10)]
+/// The stored values of each shape, read through the store: (signature, original, payload).
+type Stored = (Vec<u8>, Vec<u8>, Option<Vec<u8>>);
+
+fn stored_values(data: &Path, ids: &[String]) -> Vec<Stored> {
+    let store = shapeseek::index::Store::open(data).unwrap();
+    ids.iter()
+        .map(|id| {
+            (
+                store.signature(id).unwrap().expect("a signature"),
+                store.mesh(id).unwrap().expect("an original"),
+                store.payload(id).unwrap(),
+            )
+        })
+        .collect()
+}
+
+/// Rewrites a current (version 3) index in version 2's layout: whole values in `signatures`,
+/// `meshes` and `payloads` (`migrations/0002_payloads.md`), the chunked trees dropped.
+fn to_version_2_layout(data: &Path, ids: &[String]) {
+    let values = stored_values(data, ids);
+    let db = sled::open(data.join("db")).unwrap();
+    let (sigs, meshes, payloads) = (
+        db.open_tree("signatures").unwrap(),
+        db.open_tree("meshes").unwrap(),
+        db.open_tree("payloads").unwrap(),
+    );
+    for (id, (sig, mesh, payload)) in ids.iter().zip(values) {
+        sigs.insert(id.as_bytes(), sig).unwrap();
+        meshes.insert(id.as_bytes(), mesh).unwrap();
+        if let Some(p) = payload {
+            payloads.insert(id.as_bytes(), p).unwrap();
+        }
+    }
+    for t in ["signature_chunks", "mesh_chunks", "payload_chunks"] {
+        assert!(db.drop_tree(t).unwrap(), "{t} existed");
+    }
+    db.open_tree("meta")
+        .unwrap()
+        .insert("schema_version", &2u32.to_be_bytes())
+        .unwrap();
+    db.flush().unwrap();
+}
+
+/// Two shapes ingested by a server into `data`; their ids.
+fn two_shapes(data: &Path) -> Vec<String> {
+    let s = Server::start(data, GRACE_SECS, |_| {});
+    let ids = [icosphere(2), torus(1.0, 0.35, 20, 10)]
         .iter()
         .enumerate()
         .map(|(i, m)| {
@@ -1659,19 +1699,95 @@ fn migrate_from_version_1_computes_payloads() {
         })
         .collect();
     s.stop();
-    let written: Vec<Vec<u8>> = {
-        let store = shapeseek::index::Store::open(dir.path()).unwrap();
-        shapes
-            .iter()
-            .map(|id| {
-                store
-                    .payload(id)
-                    .unwrap()
-                    .expect("payload written at ingest")
-            })
-            .collect()
+    ids
+}
+
+/// Version 2 → 3 stores signatures, originals and payloads in pieces: every value reads back
+/// byte for byte, the old trees are gone, and the server opens the result and searches.
+#[test]
+fn migrate_from_version_2_chunks_the_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let ids = two_shapes(dir.path());
+    let before = stored_values(dir.path(), &ids);
+    assert!(
+        before.iter().all(|(s, _, p)| s.len() > 4096 && p.is_some()),
+        "signatures span several pieces"
+    );
+    to_version_2_layout(dir.path(), &ids);
+    let e = shapeseek::index::Store::open(dir.path())
+        .err()
+        .expect("a version-2 index is refused")
+        .to_string();
+    assert!(e.contains("shapeseek migrate"), "{e}");
+    let MigrateOutcome::Upgraded { from, to, .. } = migrate(dir.path()).unwrap() else {
+        panic!("not upgraded")
     };
-    // Make it a version-1 index: no payloads tree content, version 1.
+    assert_eq!((from, to), (2, SCHEMA_VERSION));
+    assert_eq!(stored_values(dir.path(), &ids), before);
+    {
+        let db = sled::open(dir.path().join("db")).unwrap();
+        let names: Vec<String> = db
+            .tree_names()
+            .iter()
+            .map(|n| String::from_utf8_lossy(n).into_owned())
+            .collect();
+        for old in ["signatures", "meshes", "payloads"] {
+            assert!(!names.iter().any(|n| n == old), "{old} left: {names:?}");
+        }
+    }
+    let s = Server::start(dir.path(), GRACE_SECS, |_| {});
+    let v = post_json(
+        s.addr,
+        "/v1/search",
+        &json!({"id": ids[0], "rerank": [{"stage": "spectral_gw"}]}),
+    );
+    assert_eq!(v.status, 200, "{}", String::from_utf8_lossy(&v.body));
+    assert_eq!(v.json()["hits"].as_array().unwrap().len(), 1);
+    // Deleting a shape removes every piece of it.
+    assert_eq!(
+        http(
+            s.addr,
+            "DELETE",
+            &format!("/v1/shapes/{}", ids[1]),
+            None,
+            b""
+        )
+        .status,
+        204
+    );
+    s.stop();
+    let db = sled::open(dir.path().join("db")).unwrap();
+    for t in ["signature_chunks", "mesh_chunks", "payload_chunks"] {
+        let left: Vec<_> = db
+            .open_tree(t)
+            .unwrap()
+            .scan_prefix(ids[1].as_bytes())
+            .collect();
+        assert!(
+            left.is_empty(),
+            "{t}: {} keys of the deleted shape",
+            left.len()
+        );
+        assert!(
+            !db.open_tree(t).unwrap().is_empty(),
+            "{t} keeps the other shape"
+        );
+    }
+}
+
+/// Version 1 → 2 computes every shape's re-ranking payload from its stored original: the
+/// payloads equal those written at ingest, bit for bit, and the server opens the result (after
+/// version 2 → 3 too).
+#[test]
+fn migrate_from_version_1_computes_payloads() {
+    let dir = tempfile::tempdir().unwrap();
+    let shapes = two_shapes(dir.path());
+    let written: Vec<Vec<u8>> = stored_values(dir.path(), &shapes)
+        .into_iter()
+        .map(|(_, _, p)| p.expect("payload written at ingest"))
+        .collect();
+    // Make it a version-1 index: version 2's layout without payloads, version 1.
+    to_version_2_layout(dir.path(), &shapes);
     {
         let db = sled::open(dir.path().join("db")).unwrap();
         db.open_tree("payloads").unwrap().clear().unwrap();

@@ -11,7 +11,10 @@
 //! [`BACKUPS_DIR`]): a container's data volume then keeps them (its parent is not writable and
 //! not persistent), and sled, which only opens `DATA/db`, never reads them.
 
-use super::store::{open_db, read_schema_version, storage_err, SCHEMA_VERSION};
+use super::store::{
+    open_db, put_chunked, read_schema_version, storage_err, MESH_CHUNKS, PAYLOAD_CHUNKS,
+    SCHEMA_VERSION, SIGNATURE_CHUNKS,
+};
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -26,12 +29,55 @@ pub struct Step {
 }
 
 /// Upgrade steps, in order (`migrations/000N_*.md` describes version N).
-pub const STEPS: &[Step] = &[Step {
-    from: 1,
-    description: "adds the `payloads` tree: the spectral Gromov–Wasserstein payload of every \
-                  stored shape, computed from its stored original",
-    apply: add_payloads,
-}];
+pub const STEPS: &[Step] = &[
+    Step {
+        from: 1,
+        description: "adds the `payloads` tree: the spectral Gromov–Wasserstein payload of every \
+                      stored shape, computed from its stored original",
+        apply: add_payloads,
+    },
+    Step {
+        from: 2,
+        description: "stores signatures, originals and payloads in pieces of at most 4 KB \
+                      (trees `signature_chunks`, `mesh_chunks`, `payload_chunks`), so that \
+                      sled's cache bounds a node's memory",
+        apply: chunk_values,
+    },
+];
+
+/// Version 2 → 3: every value of `signatures`, `meshes` and `payloads` is written, byte for
+/// byte, as a chunked value of `signature_chunks`, `mesh_chunks` and `payload_chunks`
+/// (`super::store`'s module docs), then the old tree is dropped. A tree is converted only while
+/// its old tree still holds values (its new tree is cleared first), so a step cut short by a
+/// crash converts again what it had not finished and leaves a finished tree alone.
+fn chunk_values(db: &sled::Db) -> Result<()> {
+    for (old, new) in [
+        ("signatures", SIGNATURE_CHUNKS),
+        ("meshes", MESH_CHUNKS),
+        ("payloads", PAYLOAD_CHUNKS),
+    ] {
+        let from = db.open_tree(old).map_err(storage_err)?;
+        let to = db.open_tree(new).map_err(storage_err)?;
+        if from.is_empty() {
+            continue;
+        }
+        to.clear().map_err(storage_err)?;
+        let total = from.len();
+        for (done, entry) in from.iter().enumerate() {
+            let (key, value) = entry.map_err(storage_err)?;
+            let res: std::result::Result<(), sled::transaction::TransactionError<()>> =
+                to.transaction(|t| put_chunked(t, &key, &value));
+            res.map_err(|e| storage_err(format!("{e:?}")))?;
+            if (done + 1) % 1000 == 0 || done + 1 == total {
+                eprintln!("{old}: {}/{total} in pieces", done + 1);
+            }
+        }
+        db.flush().map_err(storage_err)?;
+        db.drop_tree(old).map_err(storage_err)?;
+        db.flush().map_err(storage_err)?;
+    }
+    Ok(())
+}
 
 /// Version 1 → 2: computes the re-ranking payload ([`PayloadSpec::default`], the one the
 /// server computes at ingest) of every shape from its stored original, with the product

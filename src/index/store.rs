@@ -1,6 +1,6 @@
 //! The sled store: trees, records, atomic writes and the schema version.
 //!
-//! Trees (schema version 2, see `migrations/0001_initial.md` and `0002_payloads.md`):
+//! Trees (schema version 3, see `migrations/0001_initial.md` to `0003_chunked_values.md`):
 //!
 //! | tree | key | value |
 //! | --- | --- | --- |
@@ -10,10 +10,17 @@
 //! | `meta` | `spec_key` | the signature spec key the stored signatures were computed with |
 //! | `meta` | `created_at` | Unix milliseconds as decimal text (informational) |
 //! | `shapes` | id | [`ShapeRecord`] as JSON |
-//! | `signatures` | id | engine signature bytes |
-//! | `meshes` | id | the original upload, byte for byte |
+//! | `signature_chunks` | id, and id + chunk | engine signature bytes, chunked (below) |
+//! | `mesh_chunks` | id, and id + chunk | the original upload, byte for byte, chunked |
 //! | `by_hash` | SHA-256 of the upload (32 bytes) | id |
-//! | `payloads` | id | spectral Gromov–Wasserstein payload (`rerank::GwPayload::to_bytes`) |
+//! | `payload_chunks` | id, and id + chunk | spectral Gromov–Wasserstein payload (`rerank::GwPayload::to_bytes`), chunked |
+//!
+//! **Chunked values.** A signature (≈ 80 KB with the default), a payload or an original is
+//! stored as its length under the id (u64, little endian) and its bytes in pieces of at most
+//! [`CHUNK_BYTES`] under the id followed by the piece's number (u32, big endian), all written
+//! and removed in the shape's transaction. Whole values of that size were what sled keeps in
+//! memory once read, whatever its cache capacity: a node that had read 8.3 GB of signatures
+//! held 8.8 GB; in pieces of 4 KB sled's cache evicts them (`docs/scale-out.md`).
 //!
 //! Errors: failures of sled itself (open, read, write, transaction, flush) and an index this build
 //! cannot use as it is (another schema version, foreign data) are [`Error::Storage`]; stored bytes
@@ -31,7 +38,15 @@ use sled::transaction::{ConflictableTransactionError, TransactionError, Transact
 use std::path::{Path, PathBuf};
 
 /// The on-disk schema version this build reads and writes.
-pub const SCHEMA_VERSION: u32 = 2;
+pub const SCHEMA_VERSION: u32 = 3;
+
+/// The largest piece of a chunked value (signatures, originals, payloads).
+pub const CHUNK_BYTES: usize = 4096;
+
+/// The trees of the chunked values (schema version 3).
+pub(crate) const SIGNATURE_CHUNKS: &str = "signature_chunks";
+pub(crate) const MESH_CHUNKS: &str = "mesh_chunks";
+pub(crate) const PAYLOAD_CHUNKS: &str = "payload_chunks";
 
 const KEY_SCHEMA: &[u8] = b"schema_version";
 const KEY_CALIBRATION: &[u8] = b"calibration";
@@ -91,6 +106,101 @@ fn get_bytes(tree: &sled::Tree, key: &str) -> Result<Option<Vec<u8>>> {
         .get(key.as_bytes())
         .map_err(storage_err)?
         .map(|v| v.to_vec()))
+}
+
+/// The key of piece `i` of the chunked value of `id`.
+fn chunk_key(id: &[u8], i: u32) -> Vec<u8> {
+    let mut k = Vec::with_capacity(id.len() + 4);
+    k.extend_from_slice(id);
+    k.extend_from_slice(&i.to_be_bytes());
+    k
+}
+
+/// The number of pieces of a chunked value of `len` bytes.
+fn chunk_count(len: u64) -> Option<u32> {
+    u32::try_from(len.div_ceil(CHUNK_BYTES as u64)).ok()
+}
+
+/// The length a chunked value's head records; `None` when it is not 8 bytes.
+fn head_len(head: &[u8]) -> Option<u64> {
+    Some(u64::from_le_bytes(head.try_into().ok()?))
+}
+
+/// Writes the chunked value of `id` inside a transaction, replacing any value it had.
+pub(crate) fn put_chunked(
+    tree: &sled::transaction::TransactionalTree,
+    id: &[u8],
+    value: &[u8],
+) -> std::result::Result<(), ConflictableTransactionError<()>> {
+    remove_chunked(tree, id)?;
+    tree.insert(id, &(value.len() as u64).to_le_bytes())?;
+    for (i, piece) in value.chunks(CHUNK_BYTES).enumerate() {
+        let i = u32::try_from(i).map_err(|_| ConflictableTransactionError::Abort(()))?;
+        tree.insert(chunk_key(id, i), piece)?;
+    }
+    Ok(())
+}
+
+/// Removes the chunked value of `id` inside a transaction; false when it had none.
+pub(crate) fn remove_chunked(
+    tree: &sled::transaction::TransactionalTree,
+    id: &[u8],
+) -> std::result::Result<bool, ConflictableTransactionError<()>> {
+    let Some(head) = tree.remove(id)? else {
+        return Ok(false);
+    };
+    let n = head_len(&head)
+        .and_then(chunk_count)
+        .ok_or(ConflictableTransactionError::Abort(()))?;
+    for i in 0..n {
+        tree.remove(chunk_key(id, i))?;
+    }
+    Ok(true)
+}
+
+/// Reads the chunked value of `id` (`what` names it in errors).
+pub(crate) fn get_chunked(
+    tree: &sled::Tree,
+    id: &[u8],
+    what: &'static str,
+) -> Result<Option<Vec<u8>>> {
+    let Some(head) = tree.get(id).map_err(storage_err)? else {
+        return Ok(None);
+    };
+    let corrupt =
+        |detail: String| Error::corrupt(what, Some(String::from_utf8_lossy(id).as_ref()), detail);
+    let len = head_len(&head).ok_or_else(|| corrupt(format!("{}-byte head", head.len())))?;
+    let n = chunk_count(len).ok_or_else(|| corrupt(format!("length {len}")))?;
+    let mut out = Vec::with_capacity(usize::try_from(len).unwrap_or(0).min(1 << 30));
+    if n > 0 {
+        // One range read of the pieces, in order; a gap is a missing piece.
+        let mut i = 0u32;
+        for kv in tree.range(chunk_key(id, 0)..=chunk_key(id, n - 1)) {
+            let (k, piece) = kv.map_err(storage_err)?;
+            if k.as_ref() != chunk_key(id, i).as_slice() {
+                break;
+            }
+            out.extend_from_slice(&piece);
+            i += 1;
+        }
+        if i < n {
+            return Err(corrupt(format!("piece {i} of {n} missing")));
+        }
+    }
+    if out.len() as u64 != len {
+        return Err(corrupt(format!(
+            "{} bytes in pieces, {len} recorded",
+            out.len()
+        )));
+    }
+    Ok(Some(out))
+}
+
+/// Writes the chunked value of `id` in a transaction of its own.
+fn put_chunked_alone(tree: &sled::Tree, id: &[u8], value: &[u8]) -> Result<()> {
+    let res: std::result::Result<(), TransactionError<()>> =
+        tree.transaction(|t| put_chunked(t, id, value));
+    res.map_err(|e| storage_err(format!("{e:?}")))
 }
 
 /// Maps a sled (or transaction) failure to [`Error::Storage`].
@@ -189,7 +299,16 @@ impl Store {
             Some(SCHEMA_VERSION) => {}
             None => {
                 // A new index, unless data trees already have content (then it is not ours).
-                for t in ["shapes", "signatures", "meshes", "by_hash", "payloads"] {
+                for t in [
+                    "shapes",
+                    "signatures",
+                    "meshes",
+                    "by_hash",
+                    "payloads",
+                    SIGNATURE_CHUNKS,
+                    MESH_CHUNKS,
+                    PAYLOAD_CHUNKS,
+                ] {
                     let tree = db.open_tree(t).map_err(storage_err)?;
                     if !tree.is_empty() {
                         return Err(Error::Storage(format!(
@@ -224,10 +343,10 @@ impl Store {
         Ok(Store {
             meta: db.open_tree("meta").map_err(storage_err)?,
             shapes: db.open_tree("shapes").map_err(storage_err)?,
-            signatures: db.open_tree("signatures").map_err(storage_err)?,
-            meshes: db.open_tree("meshes").map_err(storage_err)?,
+            signatures: db.open_tree(SIGNATURE_CHUNKS).map_err(storage_err)?,
+            meshes: db.open_tree(MESH_CHUNKS).map_err(storage_err)?,
             by_hash: db.open_tree("by_hash").map_err(storage_err)?,
-            payloads: db.open_tree("payloads").map_err(storage_err)?,
+            payloads: db.open_tree(PAYLOAD_CHUNKS).map_err(storage_err)?,
             dir: dir.to_path_buf(),
             db,
         })
@@ -321,11 +440,11 @@ impl Store {
                     ));
                 }
                 shapes.insert(id, rec.as_slice())?;
-                sigs.insert(id, signature)?;
-                meshes.insert(id, original)?;
+                put_chunked(sigs, id, signature)?;
+                put_chunked(meshes, id, original)?;
                 by_hash.insert(&sha256[..], id)?;
                 if let Some(p) = payload {
-                    payloads.insert(id, p)?;
+                    put_chunked(payloads, id, p)?;
                 }
                 Ok::<_, ConflictableTransactionError<()>>(Inserted::New(record.id.clone()))
             });
@@ -346,9 +465,9 @@ impl Store {
                 let Some(rec) = shapes.remove(key)? else {
                     return Ok(false);
                 };
-                sigs.remove(key)?;
-                meshes.remove(key)?;
-                payloads.remove(key)?;
+                remove_chunked(sigs, key)?;
+                remove_chunked(meshes, key)?;
+                remove_chunked(payloads, key)?;
                 if let Ok(r) = serde_json::from_slice::<ShapeRecord>(&rec) {
                     if let Ok(h) = hex::decode(&r.sha256) {
                         by_hash.remove(h)?;
@@ -361,12 +480,14 @@ impl Store {
 
     /// The stored re-ranking payload of a shape (`None`: absent or no such shape).
     pub fn payload(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        get_bytes(&self.payloads, id)
+        get_chunked(&self.payloads, id.as_bytes(), "payload")
     }
 
     /// Writes (or replaces) the re-ranking payload of a stored shape and flushes.
     pub fn set_payload(&self, id: &str, payload: &[u8]) -> Result<()> {
-        self.put_flushed(&self.payloads, id, payload)
+        put_chunked_alone(&self.payloads, id.as_bytes(), payload)?;
+        self.db.flush().map_err(storage_err)?;
+        Ok(())
     }
 
     /// The record of a shape.
@@ -381,7 +502,7 @@ impl Store {
 
     /// The stored signature bytes of a shape.
     pub fn signature(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        get_bytes(&self.signatures, id)
+        get_chunked(&self.signatures, id.as_bytes(), "signature")
     }
 
     /// Replaces the stored signature (and the record's spec key) of an existing shape.
@@ -392,7 +513,7 @@ impl Store {
             .transaction(|(shapes, sigs)| {
                 if shapes.get(id)?.is_some() {
                     shapes.insert(id, rec.as_slice())?;
-                    sigs.insert(id, signature)?;
+                    put_chunked(sigs, id, signature)?;
                 }
                 Ok::<_, ConflictableTransactionError<()>>(())
             });
@@ -403,7 +524,7 @@ impl Store {
 
     /// The original upload of a shape.
     pub fn mesh(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        get_bytes(&self.meshes, id)
+        get_chunked(&self.meshes, id.as_bytes(), "original")
     }
 
     /// Records in id order, starting after `after` (exclusive), filtered by `tag`, at most
@@ -444,14 +565,10 @@ impl Store {
         for kv in self.shapes.iter() {
             let (k, v) = kv.map_err(storage_err)?;
             let rec: ShapeRecord = serde_json::from_slice(&v).map_err(|e| corrupt_record(&k, e))?;
-            let sig = self
-                .signatures
-                .get(&k)
-                .map_err(storage_err)?
-                .ok_or_else(|| {
-                    Error::corrupt("index", Some(rec.id.as_str()), "the shape has no signature")
-                })?;
-            out.push((rec, sig.to_vec()));
+            let sig = get_chunked(&self.signatures, &k, "signature")?.ok_or_else(|| {
+                Error::corrupt("index", Some(rec.id.as_str()), "the shape has no signature")
+            })?;
+            out.push((rec, sig));
         }
         Ok(out)
     }
@@ -525,6 +642,60 @@ pub fn now_unix_ms() -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Chunked values of every length around a piece boundary read back byte for byte; a
+    /// shorter replacement and a removal leave no piece behind; a missing piece is corruption.
+    #[test]
+    fn chunked_values_round_trip_and_leave_nothing_behind() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = open_db(&dir.path().join("db")).unwrap();
+        let tree = db.open_tree("t").unwrap();
+        let id = b"00000000000000ab";
+        let put = |v: &[u8]| put_chunked_alone(&tree, id, v).unwrap();
+        let value = |n: usize| -> Vec<u8> { (0..n).map(|i| (i * 31 % 251) as u8).collect() };
+        for n in [
+            0,
+            1,
+            CHUNK_BYTES - 1,
+            CHUNK_BYTES,
+            CHUNK_BYTES + 1,
+            3 * CHUNK_BYTES,
+            83_000,
+        ] {
+            put(&value(n));
+            assert_eq!(
+                get_chunked(&tree, id, "v").unwrap(),
+                Some(value(n)),
+                "{n} bytes"
+            );
+            let pieces = n.div_ceil(CHUNK_BYTES);
+            assert_eq!(
+                tree.len(),
+                1 + pieces,
+                "{n} bytes: the head and {pieces} pieces"
+            );
+        }
+        // Another id's value is not touched by writes and removals of this one.
+        let other = b"00000000000000ac";
+        put_chunked_alone(&tree, other, &value(5000)).unwrap();
+        put(&value(10));
+        assert_eq!(
+            tree.len(),
+            2 + 3,
+            "the shorter value's stale pieces are removed"
+        );
+        let removed: std::result::Result<bool, TransactionError<()>> =
+            tree.transaction(|t| remove_chunked(t, id));
+        assert!(removed.unwrap());
+        assert_eq!(get_chunked(&tree, id, "v").unwrap(), None);
+        assert_eq!(get_chunked(&tree, other, "v").unwrap(), Some(value(5000)));
+        assert_eq!(tree.len(), 3);
+        // A missing piece is reported, not papered over.
+        tree.remove(chunk_key(other, 1)).unwrap();
+        let e = get_chunked(&tree, other, "signature").unwrap_err();
+        assert!(matches!(e, Error::Corrupt { .. }), "{e:?}");
+        assert!(e.to_string().contains("piece 1 of 2 missing"), "{e}");
+    }
 
     /// A lock released within the patience is waited for; one held longer is reported as
     /// another process's.
