@@ -16,7 +16,8 @@
 //! | `payload_chunks` | id, and id + chunk | spectral Gromov–Wasserstein payload (`rerank::GwPayload::to_bytes`), chunked |
 //!
 //! **Chunked values.** A signature (≈ 80 KB with the default), a payload or an original is
-//! stored as its length under the id (u64, little endian) and its bytes in pieces of at most
+//! stored as a head under the id (its length, u64, and the CRC-32 of its bytes, u32, little
+//! endian) and its bytes in pieces of at most
 //! [`CHUNK_BYTES`] under the id followed by the piece's number (u32, big endian), all written
 //! and removed in the shape's transaction. Whole values of that size were what sled keeps in
 //! memory once read, whatever its cache capacity: a node that had read 8.3 GB of signatures
@@ -121,9 +122,19 @@ fn chunk_count(len: u64) -> Option<u32> {
     u32::try_from(len.div_ceil(CHUNK_BYTES as u64)).ok()
 }
 
-/// The length a chunked value's head records; `None` when it is not 8 bytes.
-fn head_len(head: &[u8]) -> Option<u64> {
-    Some(u64::from_le_bytes(head.try_into().ok()?))
+/// A chunked value's head: its length (u64) and the CRC-32 of its bytes (u32), little endian.
+fn head_of(value: &[u8]) -> [u8; 12] {
+    let mut h = [0u8; 12];
+    h[..8].copy_from_slice(&(value.len() as u64).to_le_bytes());
+    h[8..].copy_from_slice(&crc32fast::hash(value).to_le_bytes());
+    h
+}
+
+/// The length and checksum a head records; `None` when it is not a head.
+fn parse_head(head: &[u8]) -> Option<(u64, u32)> {
+    let len = u64::from_le_bytes(head.get(..8)?.try_into().ok()?);
+    let crc = u32::from_le_bytes(head.get(8..)?.try_into().ok()?);
+    Some((len, crc))
 }
 
 /// Writes the chunked value of `id` inside a transaction, replacing any value it had.
@@ -133,7 +144,7 @@ pub(crate) fn put_chunked(
     value: &[u8],
 ) -> std::result::Result<(), ConflictableTransactionError<()>> {
     remove_chunked(tree, id)?;
-    tree.insert(id, &(value.len() as u64).to_le_bytes())?;
+    tree.insert(id, &head_of(value))?;
     for (i, piece) in value.chunks(CHUNK_BYTES).enumerate() {
         let i = u32::try_from(i).map_err(|_| ConflictableTransactionError::Abort(()))?;
         tree.insert(chunk_key(id, i), piece)?;
@@ -149,8 +160,8 @@ pub(crate) fn remove_chunked(
     let Some(head) = tree.remove(id)? else {
         return Ok(false);
     };
-    let n = head_len(&head)
-        .and_then(chunk_count)
+    let n = parse_head(&head)
+        .and_then(|(len, _)| chunk_count(len))
         .ok_or(ConflictableTransactionError::Abort(()))?;
     for i in 0..n {
         tree.remove(chunk_key(id, i))?;
@@ -158,42 +169,59 @@ pub(crate) fn remove_chunked(
     Ok(true)
 }
 
-/// Reads the chunked value of `id` (`what` names it in errors).
+/// How often [`get_chunked`] reads a value again that changed while it was read.
+const CHUNKED_READ_ATTEMPTS: usize = 8;
+
+/// Reads the chunked value of `id` (`what` names it in errors). The head and the pieces are
+/// separate reads (sled's reads outside a transaction are not a snapshot), so a replacement or
+/// a delete written meanwhile is seen as pieces that do not match the head (their length or
+/// checksum): then the head and the pieces are read again (`None` once the head is gone).
+/// Pieces that still do not match after [`CHUNKED_READ_ATTEMPTS`] reads are corruption.
 pub(crate) fn get_chunked(
     tree: &sled::Tree,
     id: &[u8],
     what: &'static str,
 ) -> Result<Option<Vec<u8>>> {
-    let Some(head) = tree.get(id).map_err(storage_err)? else {
-        return Ok(None);
-    };
     let corrupt =
         |detail: String| Error::corrupt(what, Some(String::from_utf8_lossy(id).as_ref()), detail);
-    let len = head_len(&head).ok_or_else(|| corrupt(format!("{}-byte head", head.len())))?;
-    let n = chunk_count(len).ok_or_else(|| corrupt(format!("length {len}")))?;
-    let mut out = Vec::with_capacity(usize::try_from(len).unwrap_or(0).min(1 << 30));
-    if n > 0 {
-        // One range read of the pieces, in order; a gap is a missing piece.
+    let Some(mut head) = tree.get(id).map_err(storage_err)? else {
+        return Ok(None);
+    };
+    let mut last_problem = String::new();
+    for _ in 0..CHUNKED_READ_ATTEMPTS {
+        let (len, crc) =
+            parse_head(&head).ok_or_else(|| corrupt(format!("{}-byte head", head.len())))?;
+        let n = chunk_count(len).ok_or_else(|| corrupt(format!("length {len}")))?;
+        let mut out = Vec::with_capacity(usize::try_from(len).unwrap_or(0).min(1 << 30));
         let mut i = 0u32;
-        for kv in tree.range(chunk_key(id, 0)..=chunk_key(id, n - 1)) {
-            let (k, piece) = kv.map_err(storage_err)?;
-            if k.as_ref() != chunk_key(id, i).as_slice() {
-                break;
+        if n > 0 {
+            // One range read of the pieces, in order; it stops at a gap.
+            for kv in tree.range(chunk_key(id, 0)..=chunk_key(id, n - 1)) {
+                let (k, piece) = kv.map_err(storage_err)?;
+                if k.as_ref() != chunk_key(id, i).as_slice() {
+                    break;
+                }
+                out.extend_from_slice(&piece);
+                i += 1;
             }
-            out.extend_from_slice(&piece);
-            i += 1;
         }
-        if i < n {
-            return Err(corrupt(format!("piece {i} of {n} missing")));
+        let problem = if i < n {
+            format!("piece {i} of {n} missing")
+        } else if out.len() as u64 != len {
+            format!("{} bytes in pieces, {len} recorded", out.len())
+        } else if crc32fast::hash(&out) != crc {
+            "checksum mismatch".to_string()
+        } else {
+            return Ok(Some(out));
+        };
+        last_problem = problem;
+        match tree.get(id).map_err(storage_err)? {
+            None => return Ok(None),
+            Some(again) => head = again,
         }
+        std::thread::sleep(std::time::Duration::from_millis(1));
     }
-    if out.len() as u64 != len {
-        return Err(corrupt(format!(
-            "{} bytes in pieces, {len} recorded",
-            out.len()
-        )));
-    }
-    Ok(Some(out))
+    Err(corrupt(last_problem))
 }
 
 /// Writes the chunked value of `id` in a transaction of its own.
@@ -643,10 +671,22 @@ pub fn now_unix_ms() -> u64 {
 mod tests {
     use super::*;
 
+    /// sled's transaction lock is shared by every database of a process, and a commit waiting
+    /// for its log while another database flushes was seen to hang (three of these tests at
+    /// once); the tests that open databases here run one at a time.
+    static ONE_DATABASE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+    fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+        ONE_DATABASE_AT_A_TIME
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+    }
+
     /// Chunked values of every length around a piece boundary read back byte for byte; a
     /// shorter replacement and a removal leave no piece behind; a missing piece is corruption.
     #[test]
     fn chunked_values_round_trip_and_leave_nothing_behind() {
+        let _serial = one_at_a_time();
         let dir = tempfile::tempdir().unwrap();
         let db = open_db(&dir.path().join("db")).unwrap();
         let tree = db.open_tree("t").unwrap();
@@ -690,17 +730,64 @@ mod tests {
         assert_eq!(get_chunked(&tree, id, "v").unwrap(), None);
         assert_eq!(get_chunked(&tree, other, "v").unwrap(), Some(value(5000)));
         assert_eq!(tree.len(), 3);
-        // A missing piece is reported, not papered over.
+        // A changed byte and a missing piece are reported, not papered over.
+        let piece = tree.get(chunk_key(other, 0)).unwrap().unwrap();
+        let mut bad = piece.to_vec();
+        bad[17] ^= 1;
+        tree.insert(chunk_key(other, 0), bad).unwrap();
+        let e = get_chunked(&tree, other, "signature").unwrap_err();
+        assert!(matches!(e, Error::Corrupt { .. }), "{e:?}");
+        assert!(e.to_string().contains("checksum mismatch"), "{e}");
+        tree.insert(chunk_key(other, 0), piece).unwrap();
         tree.remove(chunk_key(other, 1)).unwrap();
         let e = get_chunked(&tree, other, "signature").unwrap_err();
         assert!(matches!(e, Error::Corrupt { .. }), "{e:?}");
         assert!(e.to_string().contains("piece 1 of 2 missing"), "{e}");
     }
 
+    /// A value replaced or deleted while it is read is read whole, old or new, never a mix of
+    /// the two (the head and the pieces are separate reads).
+    #[test]
+    fn chunked_reads_never_mix_two_versions() {
+        let _serial = one_at_a_time();
+        let dir = tempfile::tempdir().unwrap();
+        let db = open_db(&dir.path().join("db")).unwrap();
+        let tree = db.open_tree("t").unwrap();
+        let id = b"00000000000000ab";
+        let versions: Vec<Vec<u8>> = (0..3u8).map(|k| vec![k; 10 * CHUNK_BYTES + 7]).collect();
+        put_chunked_alone(&tree, id, &versions[0]).unwrap();
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        let (reads, gone) = std::thread::scope(|s| {
+            s.spawn(|| {
+                for k in 1..400usize {
+                    if k % 50 == 0 {
+                        let r: std::result::Result<bool, TransactionError<()>> =
+                            tree.transaction(|t| remove_chunked(t, id));
+                        r.unwrap();
+                    }
+                    put_chunked_alone(&tree, id, &versions[k % 3]).unwrap();
+                }
+                stop.store(true, std::sync::atomic::Ordering::Release);
+            });
+            let (mut reads, mut gone) = (0, 0);
+            while !stop.load(std::sync::atomic::Ordering::Acquire) {
+                match get_chunked(&tree, id, "v").unwrap() {
+                    Some(v) => assert!(versions.contains(&v), "a mix of versions"),
+                    None => gone += 1,
+                }
+                reads += 1;
+            }
+            (reads, gone)
+        });
+        assert!(reads > 10, "{reads} reads");
+        eprintln!("{reads} reads during 399 replacements, {gone} while deleted");
+    }
+
     /// A lock released within the patience is waited for; one held longer is reported as
     /// another process's.
     #[test]
     fn a_lock_released_soon_is_waited_for() {
+        let _serial = one_at_a_time();
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("db");
         let held = open_db(&path).unwrap();
