@@ -1593,7 +1593,7 @@ fn migrate_backs_up_then_upgrades() {
         Ok(())
     }
     fn version_of(dir: &Path) -> u32 {
-        let db = sled::open(dir.join("db")).unwrap();
+        let db = shapeseek::index::store::open_db(&dir.join("db")).unwrap();
         shapeseek::index::store::read_schema_version(&db)
             .unwrap()
             .unwrap()
@@ -1623,7 +1623,7 @@ fn migrate_backs_up_then_upgrades() {
         "the backup is kept inside the data directory"
     );
     assert_eq!(version_of(&data), 1);
-    let db = sled::open(data.join("db")).unwrap();
+    let db = shapeseek::index::store::open_db(&data.join("db")).unwrap();
     assert!(db
         .open_tree("meta")
         .unwrap()
@@ -1657,7 +1657,7 @@ fn stored_values(data: &Path, ids: &[String]) -> Vec<Stored> {
 /// `meshes` and `payloads` (`migrations/0002_payloads.md`), the chunked trees dropped.
 fn to_version_2_layout(data: &Path, ids: &[String]) {
     let values = stored_values(data, ids);
-    let db = sled::open(data.join("db")).unwrap();
+    let db = shapeseek::index::store::open_db(&data.join("db")).unwrap();
     let (sigs, meshes, payloads) = (
         db.open_tree("signatures").unwrap(),
         db.open_tree("meshes").unwrap(),
@@ -1725,7 +1725,7 @@ fn migrate_from_version_2_chunks_the_values() {
     assert_eq!((from, to), (2, SCHEMA_VERSION));
     assert_eq!(stored_values(dir.path(), &ids), before);
     {
-        let db = sled::open(dir.path().join("db")).unwrap();
+        let db = shapeseek::index::store::open_db(&dir.path().join("db")).unwrap();
         let names: Vec<String> = db
             .tree_names()
             .iter()
@@ -1756,7 +1756,7 @@ fn migrate_from_version_2_chunks_the_values() {
         204
     );
     s.stop();
-    let db = sled::open(dir.path().join("db")).unwrap();
+    let db = shapeseek::index::store::open_db(&dir.path().join("db")).unwrap();
     for t in ["signature_chunks", "mesh_chunks", "payload_chunks"] {
         let left: Vec<_> = db
             .open_tree(t)
@@ -1789,7 +1789,7 @@ fn migrate_from_version_1_computes_payloads() {
     // Make it a version-1 index: version 2's layout without payloads, version 1.
     to_version_2_layout(dir.path(), &shapes);
     {
-        let db = sled::open(dir.path().join("db")).unwrap();
+        let db = shapeseek::index::store::open_db(&dir.path().join("db")).unwrap();
         db.open_tree("payloads").unwrap().clear().unwrap();
         db.flush().unwrap();
     }

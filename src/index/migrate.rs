@@ -51,6 +51,9 @@ pub const STEPS: &[Step] = &[
 /// its old tree still holds values (its new tree is cleared first), so a step cut short by a
 /// crash converts again what it had not finished and leaves a finished tree alone.
 fn chunk_values(db: &sled::Db) -> Result<()> {
+    // The shapes' count for the progress lines (`len` reads a tree through: the records, not
+    // the large values).
+    let shapes = db.open_tree("shapes").map_err(storage_err)?.len();
     for (old, new) in [
         ("signatures", SIGNATURE_CHUNKS),
         ("meshes", MESH_CHUNKS),
@@ -62,16 +65,18 @@ fn chunk_values(db: &sled::Db) -> Result<()> {
             continue;
         }
         to.clear().map_err(storage_err)?;
-        let total = from.len();
-        for (done, entry) in from.iter().enumerate() {
+        let mut done = 0usize;
+        for entry in from.iter() {
             let (key, value) = entry.map_err(storage_err)?;
             let res: std::result::Result<(), sled::transaction::TransactionError<()>> =
                 to.transaction(|t| put_chunked(t, &key, &value));
             res.map_err(|e| storage_err(format!("{e:?}")))?;
-            if (done + 1) % 1000 == 0 || done + 1 == total {
-                eprintln!("{old}: {}/{total} in pieces", done + 1);
+            done += 1;
+            if done % 1000 == 0 {
+                eprintln!("{old}: {done} values in pieces (of at most {shapes})");
             }
         }
+        eprintln!("{old}: all {done} values in pieces");
         db.flush().map_err(storage_err)?;
         db.drop_tree(old).map_err(storage_err)?;
         db.flush().map_err(storage_err)?;
