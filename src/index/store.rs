@@ -756,9 +756,20 @@ mod tests {
         let id = b"00000000000000ab";
         let versions: Vec<Vec<u8>> = (0..3u8).map(|k| vec![k; 10 * CHUNK_BYTES + 7]).collect();
         put_chunked_alone(&tree, id, &versions[0]).unwrap();
-        let stop = std::sync::atomic::AtomicBool::new(false);
+        // The writer replaces 399 times (deleting now and then); the reader reads until it is
+        // done. No figure of speed is asserted: under load the reader may get few reads in.
+        use std::sync::atomic::{AtomicBool, Ordering};
+        let done = AtomicBool::new(false);
         let (reads, gone) = std::thread::scope(|s| {
             s.spawn(|| {
+                // Stops the reader however the writer ends (a failed unwrap included).
+                struct Done<'a>(&'a AtomicBool);
+                impl Drop for Done<'_> {
+                    fn drop(&mut self) {
+                        self.0.store(true, Ordering::Release);
+                    }
+                }
+                let _stop_reader = Done(&done);
                 for k in 1..400usize {
                     if k % 50 == 0 {
                         let r: std::result::Result<bool, TransactionError<()>> =
@@ -767,10 +778,9 @@ mod tests {
                     }
                     put_chunked_alone(&tree, id, &versions[k % 3]).unwrap();
                 }
-                stop.store(true, std::sync::atomic::Ordering::Release);
             });
-            let (mut reads, mut gone) = (0, 0);
-            while !stop.load(std::sync::atomic::Ordering::Acquire) {
+            let (mut reads, mut gone) = (0usize, 0usize);
+            while !done.load(Ordering::Acquire) {
                 match get_chunked(&tree, id, "v").unwrap() {
                     Some(v) => assert!(versions.contains(&v), "a mix of versions"),
                     None => gone += 1,
@@ -779,7 +789,6 @@ mod tests {
             }
             (reads, gone)
         });
-        assert!(reads > 10, "{reads} reads");
         eprintln!("{reads} reads during 399 replacements, {gone} while deleted");
     }
 
