@@ -21,7 +21,12 @@
 //! [`CHUNK_BYTES`] under the id followed by the piece's number (u32, big endian), all written
 //! and removed in the shape's transaction. Whole values of that size were what sled keeps in
 //! memory once read, whatever its cache capacity: a node that had read 8.3 GB of signatures
-//! held 8.8 GB; in pieces of 4 KB sled's cache evicts them (`docs/scale-out.md`).
+//! held 8.8 GB; in pieces of 4 KB sled's cache evicts them (`docs/scale-out.md`). A value is
+//! read without a transaction and checked against its head; one being replaced meanwhile is
+//! read again, and after [`CHUNKED_READ_ATTEMPTS`] tries inside a transaction ([`get_chunked`]).
+//!
+//! sled is built from `vendor/sled`: 0.34.7 with a fix for a hang of the whole process under
+//! writes that replace or delete values (`vendor/sled/PATCHES.md`).
 //!
 //! Errors: failures of sled itself (open, read, write, transaction, flush) and an index this build
 //! cannot use as it is (another schema version, foreign data) are [`Error::Storage`]; stored bytes
@@ -169,59 +174,104 @@ pub(crate) fn remove_chunked(
     Ok(true)
 }
 
-/// How often [`get_chunked`] reads a value again that changed while it was read.
-const CHUNKED_READ_ATTEMPTS: usize = 8;
+/// How often [`get_chunked`] reads a value without a transaction before it reads it in one.
+const CHUNKED_READ_ATTEMPTS: usize = 3;
+
+/// What is wrong with pieces read for a head of `len` bytes and checksum `crc`: `got` of the
+/// `n` pieces were found, in order, and `out` holds them; `None` when they are the value.
+fn chunk_problem(len: u64, crc: u32, got: u32, n: u32, out: &[u8]) -> Option<String> {
+    if got < n {
+        Some(format!("piece {got} of {n} missing"))
+    } else if out.len() as u64 != len {
+        Some(format!("{} bytes in pieces, {len} recorded", out.len()))
+    } else if crc32fast::hash(out) != crc {
+        Some("checksum mismatch".to_string())
+    } else {
+        None
+    }
+}
+
+/// The length, checksum and piece count a head records, or what is wrong with it.
+fn read_head(head: &[u8]) -> std::result::Result<(u64, u32, u32), String> {
+    let (len, crc) = parse_head(head).ok_or_else(|| format!("{}-byte head", head.len()))?;
+    let n = chunk_count(len).ok_or_else(|| format!("length {len}"))?;
+    Ok((len, crc, n))
+}
 
 /// Reads the chunked value of `id` (`what` names it in errors). The head and the pieces are
 /// separate reads (sled's reads outside a transaction are not a snapshot), so a replacement or
 /// a delete written meanwhile is seen as pieces that do not match the head (their length or
-/// checksum): then the head and the pieces are read again (`None` once the head is gone).
-/// Pieces that still do not match after [`CHUNKED_READ_ATTEMPTS`] reads are corruption.
+/// checksum): then the value is read again, [`CHUNKED_READ_ATTEMPTS`] times in all, and then
+/// once more inside a sled transaction, which no write interleaves with (a value rewritten
+/// faster than it can be read is read that way). Pieces that do not match their head there are
+/// corruption.
 pub(crate) fn get_chunked(
     tree: &sled::Tree,
     id: &[u8],
     what: &'static str,
 ) -> Result<Option<Vec<u8>>> {
+    read_chunked(tree, id, what, CHUNKED_READ_ATTEMPTS)
+}
+
+/// [`get_chunked`] with `attempts` reads outside a transaction (tests read with none).
+fn read_chunked(
+    tree: &sled::Tree,
+    id: &[u8],
+    what: &'static str,
+    attempts: usize,
+) -> Result<Option<Vec<u8>>> {
     let corrupt =
         |detail: String| Error::corrupt(what, Some(String::from_utf8_lossy(id).as_ref()), detail);
-    let Some(mut head) = tree.get(id).map_err(storage_err)? else {
-        return Ok(None);
-    };
-    let mut last_problem = String::new();
-    for _ in 0..CHUNKED_READ_ATTEMPTS {
-        let (len, crc) =
-            parse_head(&head).ok_or_else(|| corrupt(format!("{}-byte head", head.len())))?;
-        let n = chunk_count(len).ok_or_else(|| corrupt(format!("length {len}")))?;
+    for _ in 0..attempts {
+        let Some(head) = tree.get(id).map_err(storage_err)? else {
+            return Ok(None);
+        };
+        let (len, crc, n) = read_head(&head).map_err(corrupt)?;
         let mut out = Vec::with_capacity(usize::try_from(len).unwrap_or(0).min(1 << 30));
-        let mut i = 0u32;
+        let mut got = 0u32;
         if n > 0 {
             // One range read of the pieces, in order; it stops at a gap.
             for kv in tree.range(chunk_key(id, 0)..=chunk_key(id, n - 1)) {
                 let (k, piece) = kv.map_err(storage_err)?;
-                if k.as_ref() != chunk_key(id, i).as_slice() {
+                if k.len() != id.len() + 4
+                    || !k.starts_with(id)
+                    || k[id.len()..] != got.to_be_bytes()
+                {
                     break;
                 }
                 out.extend_from_slice(&piece);
-                i += 1;
+                got += 1;
             }
         }
-        let problem = if i < n {
-            format!("piece {i} of {n} missing")
-        } else if out.len() as u64 != len {
-            format!("{} bytes in pieces, {len} recorded", out.len())
-        } else if crc32fast::hash(&out) != crc {
-            "checksum mismatch".to_string()
-        } else {
+        if chunk_problem(len, crc, got, n, &out).is_none() {
             return Ok(Some(out));
-        };
-        last_problem = problem;
-        match tree.get(id).map_err(storage_err)? {
-            None => return Ok(None),
-            Some(again) => head = again,
         }
-        std::thread::sleep(std::time::Duration::from_millis(1));
     }
-    Err(corrupt(last_problem))
+    let read: std::result::Result<Option<Vec<u8>>, TransactionError<String>> =
+        tree.transaction(|t| {
+            let Some(head) = t.get(id)? else {
+                return Ok(None);
+            };
+            let (len, crc, n) = read_head(&head).map_err(ConflictableTransactionError::Abort)?;
+            let mut out = Vec::with_capacity(usize::try_from(len).unwrap_or(0).min(1 << 30));
+            let mut got = 0u32;
+            while got < n {
+                let Some(piece) = t.get(chunk_key(id, got))? else {
+                    break;
+                };
+                out.extend_from_slice(&piece);
+                got += 1;
+            }
+            match chunk_problem(len, crc, got, n, &out) {
+                None => Ok(Some(out)),
+                Some(problem) => Err(ConflictableTransactionError::Abort(problem)),
+            }
+        });
+    match read {
+        Ok(value) => Ok(value),
+        Err(TransactionError::Abort(problem)) => Err(corrupt(problem)),
+        Err(TransactionError::Storage(e)) => Err(storage_err(e)),
+    }
 }
 
 /// Writes the chunked value of `id` in a transaction of its own.
@@ -671,22 +721,10 @@ pub fn now_unix_ms() -> u64 {
 mod tests {
     use super::*;
 
-    /// sled's transaction lock is shared by every database of a process, and a commit waiting
-    /// for its log while another database flushes was seen to hang (three of these tests at
-    /// once); the tests that open databases here run one at a time.
-    static ONE_DATABASE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-    fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
-        ONE_DATABASE_AT_A_TIME
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-    }
-
     /// Chunked values of every length around a piece boundary read back byte for byte; a
     /// shorter replacement and a removal leave no piece behind; a missing piece is corruption.
     #[test]
     fn chunked_values_round_trip_and_leave_nothing_behind() {
-        let _serial = one_at_a_time();
         let dir = tempfile::tempdir().unwrap();
         let db = open_db(&dir.path().join("db")).unwrap();
         let tree = db.open_tree("t").unwrap();
@@ -703,11 +741,13 @@ mod tests {
             83_000,
         ] {
             put(&value(n));
-            assert_eq!(
-                get_chunked(&tree, id, "v").unwrap(),
-                Some(value(n)),
-                "{n} bytes"
-            );
+            for attempts in [CHUNKED_READ_ATTEMPTS, 0] {
+                assert_eq!(
+                    read_chunked(&tree, id, "v", attempts).unwrap(),
+                    Some(value(n)),
+                    "{n} bytes, {attempts} reads before the transaction"
+                );
+            }
             let pieces = n.div_ceil(CHUNK_BYTES);
             assert_eq!(
                 tree.len(),
@@ -727,76 +767,90 @@ mod tests {
         let removed: std::result::Result<bool, TransactionError<()>> =
             tree.transaction(|t| remove_chunked(t, id));
         assert!(removed.unwrap());
-        assert_eq!(get_chunked(&tree, id, "v").unwrap(), None);
-        assert_eq!(get_chunked(&tree, other, "v").unwrap(), Some(value(5000)));
+        for attempts in [CHUNKED_READ_ATTEMPTS, 0] {
+            assert_eq!(read_chunked(&tree, id, "v", attempts).unwrap(), None);
+            assert_eq!(
+                read_chunked(&tree, other, "v", attempts).unwrap(),
+                Some(value(5000))
+            );
+        }
         assert_eq!(tree.len(), 3);
         // A changed byte and a missing piece are reported, not papered over.
         let piece = tree.get(chunk_key(other, 0)).unwrap().unwrap();
         let mut bad = piece.to_vec();
         bad[17] ^= 1;
         tree.insert(chunk_key(other, 0), bad).unwrap();
-        let e = get_chunked(&tree, other, "signature").unwrap_err();
-        assert!(matches!(e, Error::Corrupt { .. }), "{e:?}");
-        assert!(e.to_string().contains("checksum mismatch"), "{e}");
+        for attempts in [CHUNKED_READ_ATTEMPTS, 0] {
+            let e = read_chunked(&tree, other, "signature", attempts).unwrap_err();
+            assert!(matches!(e, Error::Corrupt { .. }), "{e:?}");
+            assert!(e.to_string().contains("checksum mismatch"), "{e}");
+        }
         tree.insert(chunk_key(other, 0), piece).unwrap();
         tree.remove(chunk_key(other, 1)).unwrap();
-        let e = get_chunked(&tree, other, "signature").unwrap_err();
-        assert!(matches!(e, Error::Corrupt { .. }), "{e:?}");
-        assert!(e.to_string().contains("piece 1 of 2 missing"), "{e}");
+        for attempts in [CHUNKED_READ_ATTEMPTS, 0] {
+            let e = read_chunked(&tree, other, "signature", attempts).unwrap_err();
+            assert!(matches!(e, Error::Corrupt { .. }), "{e:?}");
+            assert!(e.to_string().contains("piece 1 of 2 missing"), "{e}");
+        }
     }
 
     /// A value replaced or deleted while it is read is read whole, old or new, never a mix of
-    /// the two (the head and the pieces are separate reads).
+    /// the two (the head and the pieces are separate reads) and never called corrupt: the
+    /// reader reads until the writer has replaced it 400 times without a pause, a third of the
+    /// reads in a transaction only.
     #[test]
     fn chunked_reads_never_mix_two_versions() {
-        let _serial = one_at_a_time();
         let dir = tempfile::tempdir().unwrap();
         let db = open_db(&dir.path().join("db")).unwrap();
         let tree = db.open_tree("t").unwrap();
         let id = b"00000000000000ab";
         let versions: Vec<Vec<u8>> = (0..3u8).map(|k| vec![k; 10 * CHUNK_BYTES + 7]).collect();
         put_chunked_alone(&tree, id, &versions[0]).unwrap();
-        // The writer replaces 399 times (deleting now and then); the reader reads until it is
-        // done. No figure of speed is asserted: under load the reader may get few reads in.
-        use std::sync::atomic::{AtomicBool, Ordering};
-        let done = AtomicBool::new(false);
+        use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+        let (stop, written) = (AtomicBool::new(false), AtomicUsize::new(0));
         let (reads, gone) = std::thread::scope(|s| {
-            s.spawn(|| {
-                // Stops the reader however the writer ends (a failed unwrap included).
-                struct Done<'a>(&'a AtomicBool);
-                impl Drop for Done<'_> {
-                    fn drop(&mut self) {
-                        self.0.store(true, Ordering::Release);
-                    }
-                }
-                let _stop_reader = Done(&done);
-                for k in 1..400usize {
+            let writer = s.spawn(|| {
+                let mut k = 1usize;
+                while !stop.load(Ordering::Acquire) {
                     if k % 50 == 0 {
                         let r: std::result::Result<bool, TransactionError<()>> =
                             tree.transaction(|t| remove_chunked(t, id));
                         r.unwrap();
                     }
                     put_chunked_alone(&tree, id, &versions[k % 3]).unwrap();
+                    written.store(k, Ordering::Release);
+                    k += 1;
                 }
             });
+            // Stops the writer however the reader ends (a failed assertion included).
+            struct Stop<'a>(&'a AtomicBool);
+            impl Drop for Stop<'_> {
+                fn drop(&mut self) {
+                    self.0.store(true, Ordering::Release);
+                }
+            }
+            let stop_writer = Stop(&stop);
             let (mut reads, mut gone) = (0usize, 0usize);
-            while !done.load(Ordering::Acquire) {
-                match get_chunked(&tree, id, "v").unwrap() {
+            while reads < 400 || written.load(Ordering::Acquire) < 400 {
+                // Every third read goes straight to the transaction, the others try first.
+                match read_chunked(&tree, id, "v", reads % 3 * CHUNKED_READ_ATTEMPTS).unwrap() {
                     Some(v) => assert!(versions.contains(&v), "a mix of versions"),
                     None => gone += 1,
                 }
                 reads += 1;
             }
+            drop(stop_writer);
+            writer.join().unwrap();
             (reads, gone)
         });
-        eprintln!("{reads} reads during 399 replacements, {gone} while deleted");
+        let writes = written.load(Ordering::Acquire);
+        eprintln!("{reads} reads during {writes} replacements, {gone} while deleted");
     }
 
     /// A lock released within the patience is waited for; one held longer is reported as
     /// another process's.
     #[test]
     fn a_lock_released_soon_is_waited_for() {
-        let _serial = one_at_a_time();
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("db");
         let held = open_db(&path).unwrap();
