@@ -23,7 +23,7 @@
 //! memory once read, whatever its cache capacity: a node that had read 8.3 GB of signatures
 //! held 8.8 GB; in pieces of 4 KB sled's cache evicts them (`docs/scale-out.md`). A value is
 //! read without a transaction and checked against its head; one being replaced meanwhile is
-//! read again, and after [`CHUNKED_READ_ATTEMPTS`] tries inside a transaction ([`get_chunked`]).
+//! read again, and after `CHUNKED_READ_ATTEMPTS` tries inside a transaction (`get_chunked`).
 //!
 //! sled is built from `vendor/sled`: 0.34.7 with a fix for a hang of the whole process under
 //! writes that replace or delete values (`vendor/sled/PATCHES.md`).
@@ -213,7 +213,8 @@ pub(crate) fn get_chunked(
     read_chunked(tree, id, what, CHUNKED_READ_ATTEMPTS)
 }
 
-/// [`get_chunked`] with `attempts` reads outside a transaction (tests read with none).
+/// [`get_chunked`] with `attempts` reads outside a transaction before the one inside (the
+/// tests also read with none).
 fn read_chunked(
     tree: &sled::Tree,
     id: &[u8],
@@ -831,7 +832,8 @@ mod tests {
             }
             let stop_writer = Stop(&stop);
             let (mut reads, mut gone) = (0usize, 0usize);
-            while reads < 400 || written.load(Ordering::Acquire) < 400 {
+            // Until both counts are reached, or the writer ended (a failed write: joined below).
+            while (reads < 400 || written.load(Ordering::Acquire) < 400) && !writer.is_finished() {
                 // Every third read goes straight to the transaction, the others try first.
                 match read_chunked(&tree, id, "v", reads % 3 * CHUNKED_READ_ATTEMPTS).unwrap() {
                     Some(v) => assert!(versions.contains(&v), "a mix of versions"),
