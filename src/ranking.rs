@@ -388,7 +388,12 @@ pub fn sketch_cdf(s: &QuantileSketch, x: f64) -> f64 {
     if nq < 2 {
         return if nq == 1 && x >= q[0] { 1.0 } else { 0.0 };
     }
-    let count = q.partition_point(|&v| v <= x);
+    cdf_from_count(q, x, q.partition_point(|&v| v <= x))
+}
+
+/// [`sketch_cdf`] at `x`, given `count`, the number of knots `≤ x`.
+fn cdf_from_count(q: &[f64], x: f64, count: usize) -> f64 {
+    let nq = q.len();
     if count == 0 {
         return 0.0;
     }
@@ -399,6 +404,38 @@ pub fn sketch_cdf(s: &QuantileSketch, x: f64) -> f64 {
     let (a, b) = (q[j], q[j + 1]);
     let frac = if b > a { (x - a) / (b - a) } else { 0.0 };
     (j as f64 + frac) / (nq - 1) as f64
+}
+
+/// [`sketch_cdf`] at non-decreasing points, in one pass over the knots: the same values bit
+/// for bit, without a binary search per point. A sketch whose knots are not sorted (only a
+/// damaged one) is evaluated by [`sketch_cdf`] itself, point by point.
+struct SketchCdfWalk<'a> {
+    s: &'a QuantileSketch,
+    sorted: bool,
+    count: usize,
+}
+
+impl<'a> SketchCdfWalk<'a> {
+    fn new(s: &'a QuantileSketch) -> Self {
+        let sorted = s.quantiles.is_sorted();
+        SketchCdfWalk {
+            s,
+            sorted,
+            count: 0,
+        }
+    }
+
+    /// `F̂(x)`; `x` must not be below the previous call's.
+    fn at(&mut self, x: f64) -> f64 {
+        let q = &self.s.quantiles;
+        if !self.sorted || q.len() < 2 {
+            return sketch_cdf(self.s, x);
+        }
+        while self.count < q.len() && q[self.count] <= x {
+            self.count += 1;
+        }
+        cdf_from_count(q, x, self.count)
+    }
 }
 
 /// Linear binning of weighted values to the centres of `bins` bins on `[0, window]` (values
@@ -474,8 +511,9 @@ pub fn sketch_histogram(
     let hs = if nsub > 0 { window / nsub as f64 } else { 0.0 };
     // Distances are ≥ 0: the first sub-bin also takes any atom at 0 (the diagonal pairs).
     let mut prev = 0.0;
+    let mut cdf = SketchCdfWalk::new(s);
     let values = (0..nsub).map(|k| {
-        let hi = sketch_cdf(s, (k + 1) as f64 * hs);
+        let hi = cdf.at((k + 1) as f64 * hs);
         let m = (hi - prev) * s.mass;
         prev = hi;
         ((k as f64 + 0.5) * hs, m)
