@@ -191,6 +191,12 @@ fn chunk_problem(len: u64, crc: u32, got: u32, n: u32, out: &[u8]) -> Option<Str
     }
 }
 
+/// An empty buffer for a value whose head records `len` bytes (at most 1 GiB reserved up
+/// front, so a damaged head cannot ask for more).
+fn with_capacity_for(len: u64) -> Vec<u8> {
+    Vec::with_capacity(usize::try_from(len).unwrap_or(0).min(1 << 30))
+}
+
 /// The length, checksum and piece count a head records, or what is wrong with it.
 fn read_head(head: &[u8]) -> std::result::Result<(u64, u32, u32), String> {
     let (len, crc) = parse_head(head).ok_or_else(|| format!("{}-byte head", head.len()))?;
@@ -228,7 +234,7 @@ fn read_chunked(
             return Ok(None);
         };
         let (len, crc, n) = read_head(&head).map_err(corrupt)?;
-        let mut out = Vec::with_capacity(usize::try_from(len).unwrap_or(0).min(1 << 30));
+        let mut out = with_capacity_for(len);
         let mut got = 0u32;
         if n > 0 {
             // One range read of the pieces, in order; it stops at a gap.
@@ -254,7 +260,7 @@ fn read_chunked(
                 return Ok(None);
             };
             let (len, crc, n) = read_head(&head).map_err(ConflictableTransactionError::Abort)?;
-            let mut out = Vec::with_capacity(usize::try_from(len).unwrap_or(0).min(1 << 30));
+            let mut out = with_capacity_for(len);
             let mut got = 0u32;
             while got < n {
                 let Some(piece) = t.get(chunk_key(id, got))? else {
