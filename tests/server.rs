@@ -1516,6 +1516,16 @@ fn config_layers() {
     let few = vec![("SHAPESEEK_EIGENPAIRS".to_string(), "30".to_string())];
     let e = ServerConfig::load(None, few).unwrap_err().to_string();
     assert!(e.contains("at least 51"), "{e}");
+    // sled's page cache: sled's own 1 GiB unless set, in MiB, never 0.
+    assert_eq!(ServerConfig::default().sled_cache_bytes(), 1 << 30);
+    let small = vec![("SHAPESEEK_SLED_CACHE_MB".to_string(), "64".to_string())];
+    assert_eq!(
+        ServerConfig::load(None, small).unwrap().sled_cache_bytes(),
+        64 << 20
+    );
+    let none = vec![("SHAPESEEK_SLED_CACHE_MB".to_string(), "0".to_string())];
+    let e = ServerConfig::load(None, none).unwrap_err().to_string();
+    assert!(e.contains("sled_cache_mb"), "{e}");
 }
 
 /// A shutdown lets an ingest already running finish (201, and it is there after a restart).

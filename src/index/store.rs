@@ -306,17 +306,32 @@ fn corrupt_record(id: &[u8], e: impl std::fmt::Display) -> Error {
 /// hold.
 const LOCK_PATIENCE: std::time::Duration = std::time::Duration::from_secs(2);
 
-/// Opens the sled database at `path`, with a clear message when another process holds it.
+/// The bytes of sled's page cache when nothing else is said: sled's own default (1 GiB).
+/// What sled keeps of a read tree is bounded by it, since values are stored in pieces of at
+/// most 4 KB (`docs/scale-out.md`); `serve` sets it with `sled_cache_mb`.
+pub const DEFAULT_CACHE_BYTES: u64 = 1 << 30;
+
+/// Opens the sled database at `path` with sled's default cache ([`open_db_with_cache`]).
+pub fn open_db(path: &Path) -> Result<sled::Db> {
+    open_db_with_cache(path, DEFAULT_CACHE_BYTES)
+}
+
+/// Opens the sled database at `path` with a page cache of `cache_bytes`, with a clear message
+/// when another process holds it.
 ///
 /// sled releases its file lock only when the last of its background threads lets go of a
 /// database, which can be a moment after the database was dropped: reopening right after closing
 /// (as `migrate` does: it reads the version, backs up, then opens again) could be refused. A
 /// refused lock is therefore retried for `LOCK_PATIENCE` before it is reported as another
 /// process's.
-pub fn open_db(path: &Path) -> Result<sled::Db> {
+pub fn open_db_with_cache(path: &Path, cache_bytes: u64) -> Result<sled::Db> {
     let deadline = std::time::Instant::now() + LOCK_PATIENCE;
     loop {
-        let e = match sled::Config::new().path(path).open() {
+        let e = match sled::Config::new()
+            .path(path)
+            .cache_capacity(cache_bytes)
+            .open()
+        {
             Ok(db) => return Ok(db),
             Err(e) => e.to_string(),
         };
@@ -376,10 +391,16 @@ pub struct Store {
 impl Store {
     /// Opens (or creates) the store in `dir`. A new database is stamped with
     /// [`SCHEMA_VERSION`]; an existing one must have exactly that version (older: run
-    /// `shapeseek migrate`; newer or unknown: refused).
+    /// `shapeseek migrate`; newer or unknown: refused). sled's page cache is
+    /// [`DEFAULT_CACHE_BYTES`].
     pub fn open(dir: &Path) -> Result<Store> {
+        Store::open_with_cache(dir, DEFAULT_CACHE_BYTES)
+    }
+
+    /// [`Store::open`] with a page cache of `cache_bytes`.
+    pub fn open_with_cache(dir: &Path, cache_bytes: u64) -> Result<Store> {
         std::fs::create_dir_all(dir)?;
-        let db = open_db(&dir.join("db"))?;
+        let db = open_db_with_cache(&dir.join("db"), cache_bytes)?;
         match read_schema_version(&db)? {
             Some(SCHEMA_VERSION) => {}
             None => {

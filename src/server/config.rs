@@ -12,6 +12,10 @@ use std::path::PathBuf;
 pub struct ServerConfig {
     /// Data directory (the sled index lives in `<data>/db`); used when `store` is empty.
     pub data: PathBuf,
+    /// MiB of sled's page cache for the sled index in `data` (sled's default, 1024). What the
+    /// node keeps of the stored values it reads (signatures at start and recalibration, payloads
+    /// for re-ranking stages, originals) is bounded by it; the scan's own memory is not.
+    pub sled_cache_mb: u64,
     /// A PostgreSQL URL (`postgres://…`) to keep the shapes in instead of the sled index in
     /// `data` (empty: the sled index). The database must be migrated (`shapeseek migrate
     /// --store URL`).
@@ -107,6 +111,7 @@ impl Default for ServerConfig {
     fn default() -> Self {
         Self {
             data: PathBuf::from("./shapeseek-data"),
+            sled_cache_mb: 1024,
             store: String::new(),
             queue: String::new(),
             queue_ack_wait_secs: 30.0,
@@ -219,6 +224,9 @@ impl ServerConfig {
                 return bad(&format!("{name} must be in (0, 86400]"));
             }
         }
+        if !(1..=1 << 20).contains(&self.sled_cache_mb) {
+            return bad("sled_cache_mb must be in 1..=1048576");
+        }
         if self.max_connections == 0 {
             return bad("max_connections must be > 0");
         }
@@ -298,6 +306,11 @@ impl ServerConfig {
             return bad("store must be a postgres:// or postgresql:// URL (or empty: the sled index in `data`)");
         }
         Ok(())
+    }
+
+    /// sled's page cache in bytes (`sled_cache_mb`).
+    pub fn sled_cache_bytes(&self) -> u64 {
+        self.sled_cache_mb << 20
     }
 
     /// The PostgreSQL URL of `store`, `None` for the sled index in `data`.

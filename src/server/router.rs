@@ -282,7 +282,9 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
     let addr = listener.local_addr()?;
     let store = match cfg.store_url() {
         Some(url) => crate::storage::open(url).await?,
-        None => crate::storage::open_dir(cfg.data.clone()).await?,
+        None => {
+            crate::storage::open_dir_with_cache(cfg.data.clone(), cfg.sled_cache_bytes()).await?
+        }
     };
     let cluster = match cfg.queue_url() {
         Some(url) => Some(super::cluster::Cluster::connect(&cfg, url).await?),

@@ -393,9 +393,18 @@ pub async fn open(target: &str) -> Result<std::sync::Arc<dyn ShapeStore>> {
     }
 }
 
-/// Opens (or creates) the sled index in the data directory `dir`.
+/// Opens (or creates) the sled index in the data directory `dir`, with sled's default page
+/// cache.
 pub async fn open_dir(dir: std::path::PathBuf) -> Result<std::sync::Arc<dyn ShapeStore>> {
-    let s = tokio::task::spawn_blocking(move || SledStorage::open(&dir))
+    open_dir_with_cache(dir, crate::index::store::DEFAULT_CACHE_BYTES).await
+}
+
+/// [`open_dir`] with a page cache of `cache_bytes`.
+pub async fn open_dir_with_cache(
+    dir: std::path::PathBuf,
+    cache_bytes: u64,
+) -> Result<std::sync::Arc<dyn ShapeStore>> {
+    let s = tokio::task::spawn_blocking(move || SledStorage::open_with_cache(&dir, cache_bytes))
         .await
         .map_err(join_err)??;
     Ok(std::sync::Arc::new(s))

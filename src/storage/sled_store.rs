@@ -33,6 +33,14 @@ impl SledStorage {
         Ok(SledStorage::from_store(Store::open(dir)?))
     }
 
+    /// [`SledStorage::open`] with a page cache of `cache_bytes` ([`Store::open_with_cache`]).
+    pub fn open_with_cache(dir: &Path, cache_bytes: u64) -> Result<SledStorage> {
+        Ok(SledStorage::from_store(Store::open_with_cache(
+            dir,
+            cache_bytes,
+        )?))
+    }
+
     /// Wraps an open store.
     pub fn from_store(store: Store) -> SledStorage {
         SledStorage {
