@@ -30,8 +30,9 @@ type Meta = (String, String, Vec<String>);
 struct Loaded {
     /// This node's shapes, in id order.
     rows: Vec<Meta>,
-    /// One per row, under the stored calibration of epoch `encoded_under` (empty when none).
-    encoded: Vec<Encoded>,
+    /// The scan of every row, built while reading under the stored calibration of epoch
+    /// `encoded_under` (none when there was no stored calibration).
+    scan: Option<ScanIndex>,
     encoded_under: Option<u64>,
     /// The shapes the calibration would be computed on (the whole corpus's sample).
     sample: Sample,
@@ -102,9 +103,11 @@ impl App {
 
     /// Reads every stored signature once, page by page: a stale or unreadable one is recomputed
     /// from the stored original and written back; each of this node's shapes is encoded under
-    /// the stored calibration seen before reading (if any) and its signature dropped, except
-    /// those the calibration sample keeps ([`super::sample`]). So a load holds ≈ 3.9 KB per shape
-    /// plus at most `calibration_sample` signatures, not every signature at once.
+    /// the stored calibration seen before reading (if any), appended to the scan being built,
+    /// and its signature dropped, except those the calibration sample keeps
+    /// ([`super::sample`]). So a load holds the scan itself plus a page of encodings and at most
+    /// `calibration_sample` signatures: neither every signature nor every shape's encoding
+    /// beside the scan built from them.
     fn load_signatures(&self) -> crate::Result<Loaded> {
         use rayon::prelude::*;
         let spec_key = self.engine.spec_key();
@@ -113,16 +116,25 @@ impl App {
         // The usual restart: the stored calibration fits the corpus. Then the sample is only
         // listed (its signatures read later should a recomputed signature force a new
         // calibration after all), and the load holds nothing but the encodings.
-        let expect_fit = match &seen {
-            Some((_, on, _)) => {
+        let (expect_fit, scan) = match &seen {
+            Some((cal, on, _)) => {
                 let count = self.block(self.store.count())? as usize;
-                !moved(*on, count, self.cfg.recalibrate_fraction)
+                // Room for this node's part of the store (a shard's is about its share; the
+                // scan grows past a reservation as any vector does).
+                let part = self
+                    .shard()
+                    .map_or(count, |sh| count / sh.spec.count.max(1) as usize);
+                let scan = ScanIndex::with_capacity(cal.clone(), *on, part);
+                (
+                    !moved(*on, count, self.cfg.recalibrate_fraction),
+                    Some(scan),
+                )
             }
-            None => false,
+            None => (false, None),
         };
         let mut l = Loaded {
             rows: Vec::new(),
-            encoded: Vec::new(),
+            scan,
             encoded_under: seen.as_ref().map(|(_, _, epoch)| *epoch),
             sample: Sample::new(self.cfg.calibration_sample),
             recomputed: 0,
@@ -163,11 +175,14 @@ impl App {
                 };
                 own.push((rec, sig));
             }
-            if let (Some((cal, _, _)), Some(layout)) = (&seen, &layout) {
-                l.encoded.par_extend(
-                    own.par_iter()
-                        .map(|(_, sig)| Encoded::from_signature(sig, cal, layout)),
-                );
+            if let (Some((cal, _, _)), Some(layout), Some(scan)) = (&seen, &layout, &mut l.scan) {
+                let encoded: Vec<Encoded> = own
+                    .par_iter()
+                    .map(|(_, sig)| Encoded::from_signature(sig, cal, layout))
+                    .collect();
+                for ((rec, _), e) in own.iter().zip(&encoded) {
+                    scan.push_encoded(&rec.id, &rec.name, &rec.tags, e);
+                }
             }
             for (rec, sig) in own {
                 if expect_fit {
@@ -264,18 +279,24 @@ impl App {
                 if l.recomputed == 0 && !moved(on, n, self.cfg.recalibrate_fraction) =>
             {
                 self.block(lock.release())?;
-                if l.encoded_under == Some(epoch) && l.encoded.len() == l.rows.len() {
-                    let mut scan = ScanIndex::with_capacity(cal, on, l.rows.len());
-                    for ((id, name, tags), e) in l.rows.iter().zip(&l.encoded) {
-                        scan.push_encoded(id, name, tags, e);
+                match l.scan {
+                    Some(scan)
+                        if l.encoded_under == Some(epoch)
+                            && scan.calibrated_on() == on
+                            && scan.len() == l.rows.len() =>
+                    {
+                        Ok(scan)
                     }
-                    Ok(scan)
-                } else {
-                    // Another node recalibrated while this one read.
-                    Ok(self.encode_rows(cal, on, l.rows))
+                    scan => {
+                        // Another node recalibrated while this one read.
+                        drop(scan);
+                        Ok(self.encode_rows(cal, on, l.rows))
+                    }
                 }
             }
             _ => {
+                // Encoded under a calibration that is about to be replaced.
+                drop(l.scan);
                 let whole = l.sample.is_whole() && self.shard().is_none();
                 let mut sample = l.sample;
                 sample.fill(|id| self.stored_signature(id));
