@@ -30,7 +30,7 @@ impl SledStorage {
     /// Opens (or creates) the index in `dir` ([`Store::open`]: a new index is stamped with the
     /// build's schema version, an older or newer one is refused). Blocking.
     pub fn open(dir: &Path) -> Result<SledStorage> {
-        Ok(SledStorage::from_store(Store::open(dir)?))
+        SledStorage::open_with_cache(dir, crate::index::store::DEFAULT_CACHE_BYTES)
     }
 
     /// [`SledStorage::open`] with a page cache of `cache_bytes` ([`Store::open_with_cache`]).
