@@ -396,3 +396,135 @@ impl App {
 pub(super) fn moved(calibrated_on: usize, n: usize, fraction: f64) -> bool {
     (n as f64 - calibrated_on as f64).abs() > fraction * (calibrated_on as f64).max(1.0)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::index::default_engine;
+    use crate::mesh::generate::{bumpy_sphere, bumpy_torus, icosphere, torus};
+    use crate::mesh::write::write_mesh;
+    use crate::server::state::Upload;
+    use std::sync::atomic::Ordering;
+
+    const K: usize = 60;
+
+    fn engine() -> Engine {
+        let mut e = default_engine();
+        e.analyze.eigen.k = K;
+        e
+    }
+
+    fn app(
+        dir: &std::path::Path,
+        store: &Arc<dyn ShapeStore>,
+        rt: &tokio::runtime::Runtime,
+    ) -> App {
+        let cfg = ServerConfig {
+            data: dir.to_path_buf(),
+            workers: 2,
+            eigenpairs: K,
+            ..ServerConfig::default()
+        };
+        App::load(cfg, engine(), store.clone(), rt.handle().clone()).unwrap()
+    }
+
+    /// Every row of `scan` as (id, encoding), in scan order.
+    fn encodings(scan: &ScanIndex) -> Vec<(String, Encoded)> {
+        (0..scan.len())
+            .map(|at| (scan.id(at).to_string(), scan.corpus().encoded(at)))
+            .collect()
+    }
+
+    /// The calibration epoch of `app`'s scan and its rows' encodings.
+    fn served(app: &App) -> (u64, Vec<(String, Encoded)>) {
+        let scan = app.scan.read().unwrap();
+        let epoch = app.engine.calibration_epoch(scan.calibration().unwrap());
+        (epoch, encodings(&scan))
+    }
+
+    /// A node reads the stored signatures under one calibration; before it takes the
+    /// calibration lock, another node commits a newer one that still fits the corpus. The
+    /// scan built while reading is under the old calibration: the node must not serve it but
+    /// encode every shape again under the newer one, exactly as a node that starts afterwards.
+    #[test]
+    fn a_calibration_committed_while_loading_replaces_the_scan_built_under_the_old_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        let store = rt
+            .block_on(crate::storage::open_dir(dir.path().to_path_buf()))
+            .unwrap();
+        let first = Arc::new(app(dir.path(), &store, &rt));
+        let meshes = [
+            icosphere(3),
+            bumpy_sphere(3, 0.05),
+            bumpy_sphere(3, 0.1),
+            torus(1.0, 0.3, 40, 16),
+            torus(1.0, 0.45, 40, 16),
+            bumpy_torus(40, 16),
+        ];
+        for (i, m) in meshes.iter().enumerate() {
+            let mut bytes = Vec::new();
+            write_mesh(m, Format::Obj, &mut bytes).unwrap();
+            let up = Upload {
+                bytes: bytes.into(),
+                hint: Some(Format::Obj),
+                name: Some(format!("s{i}")),
+                tags: Vec::new(),
+            };
+            assert!(rt.block_on(first.ingest(up)).unwrap().created);
+        }
+        // The background recalibration settles (it shares the store with the nodes below).
+        let t0 = std::time::Instant::now();
+        while first.recalibrating.load(Ordering::Acquire) || first.needs_recalibration() {
+            assert!(t0.elapsed().as_secs() < 120, "recalibration did not settle");
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        drop(first);
+
+        // A node started now takes the usual restart's path: the scan built while reading.
+        let node = app(dir.path(), &store, &rt);
+        let (old_epoch, before) = served(&node);
+        assert_eq!(before.len(), meshes.len());
+
+        // The same node loads again, and another node commits a calibration between its read
+        // and its lock: computed on half of the shapes, stored as calibrated on all of them
+        // (so it fits, and only its epoch tells it apart).
+        let loaded = node.load_signatures().unwrap();
+        assert_eq!(loaded.encoded_under, Some(old_epoch));
+        assert!(loaded.scan.is_some(), "the scan was built while reading");
+        let half: Vec<Signature> = before[..3]
+            .iter()
+            .map(|(id, _)| {
+                let bytes = node.block(store.signature(id)).unwrap().unwrap();
+                node.engine.decode_signature(&bytes).unwrap()
+            })
+            .collect();
+        let lock = node.block(store.lock_calibration()).unwrap();
+        let new_epoch = lock.next_epoch();
+        assert!(new_epoch > old_epoch);
+        let other = node
+            .engine
+            .calibrate(&half.iter().collect::<Vec<_>>(), new_epoch);
+        node.commit_calibration(lock, new_epoch, meshes.len(), &other)
+            .unwrap();
+
+        let scan = node.calibrated_scan(loaded).unwrap();
+        assert_eq!(
+            node.engine.calibration_epoch(scan.calibration().unwrap()),
+            new_epoch
+        );
+        assert_eq!(scan.calibrated_on(), meshes.len());
+        let after = encodings(&scan);
+        assert_ne!(
+            after, before,
+            "the other calibration encodes differently (else the test shows nothing)"
+        );
+        // A node that starts now reads the newer calibration before reading the signatures.
+        let later = app(dir.path(), &store, &rt);
+        assert_eq!(served(&later), (new_epoch, after));
+    }
+}
