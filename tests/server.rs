@@ -1391,6 +1391,50 @@ fn sigkill_during_ingest_leaves_a_consistent_index() {
     assert!(status.success(), "SIGTERM exit: {status}");
 }
 
+/// A delete answered 204 is durable: SIGKILL right after the answer, and the shape stays
+/// deleted after the restart (sled's own background flush would come only later).
+#[test]
+fn sigkill_right_after_a_delete_keeps_the_shape_deleted() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let (mut child, a) = spawn_child(&data);
+    let mut ids = Vec::new();
+    for i in 0..4 {
+        let m = squash(icosphere(2), 1.0 + 0.05 * i as f64, 1.0, 1.0);
+        let r = http(
+            a,
+            "POST",
+            "/v1/shapes",
+            Some("model/obj"),
+            &bytes_of(&m, Format::Obj),
+        );
+        assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+        ids.push(r.json()["id"].as_str().unwrap().to_string());
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    // Three rounds: delete one shape, SIGKILL as soon as the answer is read.
+    for id in &ids[..3] {
+        let (mut child, a) = spawn_child(&data);
+        let r = http(a, "DELETE", &format!("/v1/shapes/{id}"), None, b"");
+        assert_eq!(r.status, 204, "{}", String::from_utf8_lossy(&r.body));
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
+    let (mut child, a) = spawn_child(&data);
+    for id in &ids[..3] {
+        assert_eq!(
+            get(a, &format!("/v1/shapes/{id}")).status,
+            404,
+            "deleted shape {id} is back after SIGKILL"
+        );
+    }
+    assert_eq!(get(a, &format!("/v1/shapes/{}", ids[3])).status, 200);
+    assert_eq!(get(a, "/v1/index").json()["shapes"], 1);
+    child.kill().unwrap();
+    child.wait().unwrap();
+}
+
 /// The shared mini benchmark (3 classes × 8 shapes), when present.
 #[test]
 fn mini_benchmark_nearest_neighbours() {

@@ -581,7 +581,12 @@ impl Store {
                 }
                 Ok::<_, ConflictableTransactionError<()>>(true)
             });
-        res.map_err(|e| storage_err(format!("{e:?}")))
+        let deleted = res.map_err(|e| storage_err(format!("{e:?}")))?;
+        if deleted {
+            // Durable before the caller acknowledges it, as every other write.
+            self.db.flush().map_err(storage_err)?;
+        }
+        Ok(deleted)
     }
 
     /// The stored re-ranking payload of a shape (`None`: absent or no such shape).
