@@ -10,6 +10,11 @@
 //! written is the stored one + 1, or this node's + 1 when that is larger (the provisional
 //! calibration a first shape gets in memory counts as epoch 1 and is never stored).
 //!
+//! A calibration is installed only once it is committed: one the store refused (a lost
+//! connection, a full disk) is dropped and the scan keeps the one it has until the next change
+//! tries again. An install never replaces a newer epoch (installs run concurrently on a
+//! cluster node, and one that began first may end last).
+//!
 //! Above `calibration_sample` shapes (or on a shard node) the calibration is computed on the
 //! sample of `src/server/sample.rs` and every held shape re-encoded from its stored signature
 //! one at a time, so a recalibration never holds more than that many signatures.
@@ -63,7 +68,8 @@ impl App {
 
     /// Runs [`App::recalibrate_loop`] until the calibration fits the corpus, or until the
     /// lock is held elsewhere (that node's epoch arrives through the store; a cluster node's
-    /// reconciliation tries again later).
+    /// reconciliation tries again later) or the store refused the commit (the next change
+    /// tries again).
     fn recalibrate_until_settled(&self, provisional: bool) {
         let mut provisional = provisional;
         loop {
@@ -82,7 +88,7 @@ impl App {
     }
 
     /// Recalibrates while the corpus moved; true when it stopped because the lock was held
-    /// elsewhere or could not be taken.
+    /// elsewhere or could not be taken, or the new calibration could not be committed.
     fn recalibrate_loop(&self, mut provisional: bool) -> bool {
         loop {
             let (n, local_epoch) = {
@@ -177,21 +183,28 @@ impl App {
             let layout = Layout::of(&cal);
             let corpus = Corpus::build(layout, &encoded);
             drop(encoded);
-            match self.commit_calibration(lock, epoch, on, &cal) {
-                Ok(()) => {
-                    let app_rt = self.rt.clone();
-                    let bus = self.cluster().map(|c| c.bus.clone());
-                    if let Some(bus) = bus {
-                        app_rt.spawn(async move {
-                            if let Err(e) = bus.announce(&Change::Calibration { epoch }).await {
-                                tracing::warn!(error = %e, "could not announce the calibration");
-                            }
-                        });
-                    }
-                }
-                Err(e) => tracing::error!(error = %e, "could not persist the calibration"),
+            if let Err(e) = self.commit_calibration(lock, epoch, on, &cal) {
+                // Not installed: an epoch the store does not hold would be this node's alone
+                // (its shards' peers could never match it, and a later commit of the same
+                // epoch by another node would carry another calibration). The scan keeps the
+                // calibration it has; the next change (or reconciliation) tries again.
+                tracing::error!(
+                    error = %e,
+                    epoch,
+                    "could not persist the calibration; kept the current one"
+                );
+                return true;
             }
-            self.install_built(cal, on, &snapshot, corpus);
+            if let Some(bus) = self.cluster().map(|c| c.bus.clone()) {
+                self.rt.spawn(async move {
+                    if let Err(e) = bus.announce(&Change::Calibration { epoch }).await {
+                        tracing::warn!(error = %e, "could not announce the calibration");
+                    }
+                });
+            }
+            if !self.install_built(cal, on, &snapshot, corpus) {
+                continue;
+            }
             tracing::info!(epoch, shapes = on, ms = ms(t), "recalibrated");
         }
     }
@@ -216,21 +229,43 @@ impl App {
         let corpus = Corpus::build(Layout::of(&cal), &encoded);
         drop(encoded);
         let epoch = self.engine.calibration_epoch(&cal);
-        self.install_built(cal, on, &snapshot, corpus);
-        tracing::info!(epoch, shapes = on, "installed the stored calibration");
+        if self.install_built(cal, on, &snapshot, corpus) {
+            tracing::info!(epoch, shapes = on, "installed the stored calibration");
+        }
     }
 
-    fn install_built(&self, cal: Arc<Calibration>, on: usize, snapshot: &[String], corpus: Corpus) {
-        self.scan
-            .write()
-            .unwrap_or_else(|p| p.into_inner())
-            .install_calibration(cal, on, snapshot, corpus, &mut |id, cal, layout| match self
-                .stored_signature(id)
-            {
-                Some(s) => Encoded::from_signature(&s, cal, layout),
-                None => Encoded::absent(layout),
-            });
+    /// Installs `cal` with `corpus` (its encoding of `snapshot`), unless the scan holds a
+    /// newer epoch by now: installs run concurrently (the replica's reconciliation, a
+    /// coordinator that saw a newer epoch, this node's own recalibration), and one that began
+    /// first may end last. False when skipped.
+    fn install_built(
+        &self,
+        cal: Arc<Calibration>,
+        on: usize,
+        snapshot: &[String],
+        corpus: Corpus,
+    ) -> bool {
+        let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
+        let epoch = self.engine.calibration_epoch(&cal);
+        if let Some(held) = scan.calibration().map(|c| self.engine.calibration_epoch(c)) {
+            if held > epoch {
+                tracing::info!(
+                    epoch,
+                    held,
+                    "a newer calibration was installed meanwhile; skipped"
+                );
+                return false;
+            }
+        }
+        scan.install_calibration(cal, on, snapshot, corpus, &mut |id, cal, layout| match self
+            .stored_signature(id)
+        {
+            Some(s) => Encoded::from_signature(&s, cal, layout),
+            None => Encoded::absent(layout),
+        });
+        drop(scan);
         self.update_gauges();
+        true
     }
 
     /// The calibration sample of every stored shape (`src/server/sample.rs`): the records
@@ -278,5 +313,96 @@ impl App {
                 None
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::server::test_support::{ingest, meshes, node, runtime, served_epoch, wait_idle};
+    use crate::storage::faulty::Faulty;
+    use crate::storage::ShapeStore;
+
+    /// A recalibration whose commit fails installs nothing: the node keeps ranking with the
+    /// stored epoch (an epoch only it held would match no peer, and another node's later
+    /// commit of the same number would be another calibration). The next change commits and
+    /// installs one.
+    #[test]
+    fn a_calibration_that_could_not_be_committed_is_not_installed() {
+        let dir = tempfile::tempdir().unwrap();
+        let rt = runtime();
+        let faulty = Arc::new(Faulty::new(crate::server::test_support::sled_store(
+            dir.path(),
+            &rt,
+        )));
+        let store: Arc<dyn ShapeStore> = faulty.clone();
+        let app = Arc::new(node(dir.path(), &store, &rt));
+        let meshes = meshes();
+        for (i, m) in meshes[..3].iter().enumerate() {
+            ingest(&app, &rt, m, &format!("s{i}"));
+            wait_idle(&app);
+        }
+        let stored = || app.block(store.calibration()).unwrap().unwrap();
+        let before = stored();
+        assert_eq!(served_epoch(&app), before.epoch);
+        assert_eq!(before.calibrated_on, 3);
+
+        // Two more shapes move the corpus past `recalibrate_fraction`: the recalibration runs
+        // and its commit fails.
+        faulty.fail_commits.store(true, Ordering::SeqCst);
+        let tried = faulty.commits_tried.load(Ordering::SeqCst);
+        for (i, m) in meshes[3..5].iter().enumerate() {
+            ingest(&app, &rt, m, &format!("t{i}"));
+            wait_idle(&app);
+        }
+        assert!(
+            faulty.commits_tried.load(Ordering::SeqCst) > tried,
+            "a commit was tried"
+        );
+        assert_eq!(stored().epoch, before.epoch, "nothing committed");
+        assert_eq!(served_epoch(&app), before.epoch, "nothing installed");
+        assert_eq!(app.scan.read().unwrap().calibrated_on(), 3);
+        assert!(app.needs_recalibration(), "still due");
+
+        // The store works again: the next change recalibrates, commits and installs.
+        faulty.fail_commits.store(false, Ordering::SeqCst);
+        ingest(&app, &rt, &meshes[5], "u");
+        wait_idle(&app);
+        let after = stored();
+        assert!(after.epoch > before.epoch);
+        assert_eq!(after.calibrated_on, 6);
+        assert_eq!(served_epoch(&app), after.epoch);
+        assert!(!app.needs_recalibration());
+    }
+
+    /// An install that began under an older epoch and ends after a newer one was installed
+    /// (installs run concurrently on a cluster node) leaves the newer one in place.
+    #[test]
+    fn an_older_calibration_never_replaces_a_newer_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let rt = runtime();
+        let store = crate::server::test_support::sled_store(dir.path(), &rt);
+        let app = Arc::new(node(dir.path(), &store, &rt));
+        for (i, m) in meshes().iter().enumerate() {
+            ingest(&app, &rt, m, &format!("s{i}"));
+            wait_idle(&app);
+        }
+        let held = served_epoch(&app);
+        assert!(held > 1);
+        let sigs: Vec<Signature> = app
+            .scan
+            .read()
+            .unwrap()
+            .ids()
+            .iter()
+            .map(|id| app.stored_signature(id).unwrap())
+            .collect();
+        let refs: Vec<&Signature> = sigs.iter().collect();
+        let older = Arc::new(app.engine.calibrate(&refs, held - 1));
+        app.install(older, sigs.len());
+        assert_eq!(served_epoch(&app), held, "the newer epoch stays");
+        let newer = Arc::new(app.engine.calibrate(&refs, held + 1));
+        app.install(newer, sigs.len());
+        assert_eq!(served_epoch(&app), held + 1, "a newer one is installed");
     }
 }

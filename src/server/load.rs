@@ -400,33 +400,7 @@ pub(super) fn moved(calibrated_on: usize, n: usize, fraction: f64) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::index::default_engine;
-    use crate::mesh::generate::{bumpy_sphere, bumpy_torus, icosphere, torus};
-    use crate::mesh::write::write_mesh;
-    use crate::server::state::Upload;
-    use std::sync::atomic::Ordering;
-
-    const K: usize = 60;
-
-    fn engine() -> Engine {
-        let mut e = default_engine();
-        e.analyze.eigen.k = K;
-        e
-    }
-
-    fn app(
-        dir: &std::path::Path,
-        store: &Arc<dyn ShapeStore>,
-        rt: &tokio::runtime::Runtime,
-    ) -> App {
-        let cfg = ServerConfig {
-            data: dir.to_path_buf(),
-            workers: 2,
-            eigenpairs: K,
-            ..ServerConfig::default()
-        };
-        App::load(cfg, engine(), store.clone(), rt.handle().clone()).unwrap()
-    }
+    use crate::server::test_support::{ingest, meshes, node, runtime, sled_store, wait_idle};
 
     /// Every row of `scan` as (id, encoding), in scan order.
     fn encodings(scan: &ScanIndex) -> Vec<(String, Encoded)> {
@@ -449,72 +423,49 @@ mod tests {
     #[test]
     fn a_calibration_committed_while_loading_replaces_the_scan_built_under_the_old_one() {
         let dir = tempfile::tempdir().unwrap();
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap();
-        let store = rt
-            .block_on(crate::storage::open_dir(dir.path().to_path_buf()))
-            .unwrap();
-        let first = Arc::new(app(dir.path(), &store, &rt));
-        let meshes = [
-            icosphere(3),
-            bumpy_sphere(3, 0.05),
-            bumpy_sphere(3, 0.1),
-            torus(1.0, 0.3, 40, 16),
-            torus(1.0, 0.45, 40, 16),
-            bumpy_torus(40, 16),
-        ];
+        let rt = runtime();
+        let store = sled_store(dir.path(), &rt);
+        let first = Arc::new(node(dir.path(), &store, &rt));
+        let meshes = meshes();
         for (i, m) in meshes.iter().enumerate() {
-            let mut bytes = Vec::new();
-            write_mesh(m, Format::Obj, &mut bytes).unwrap();
-            let up = Upload {
-                bytes: bytes.into(),
-                hint: Some(Format::Obj),
-                name: Some(format!("s{i}")),
-                tags: Vec::new(),
-            };
-            assert!(rt.block_on(first.ingest(up)).unwrap().created);
+            ingest(&first, &rt, m, &format!("s{i}"));
         }
         // The background recalibration settles (it shares the store with the nodes below).
-        let t0 = std::time::Instant::now();
-        while first.recalibrating.load(Ordering::Acquire) || first.needs_recalibration() {
-            assert!(t0.elapsed().as_secs() < 120, "recalibration did not settle");
-            std::thread::sleep(std::time::Duration::from_millis(20));
-        }
+        wait_idle(&first);
+        assert!(!first.needs_recalibration());
         drop(first);
 
         // A node started now takes the usual restart's path: the scan built while reading.
-        let node = app(dir.path(), &store, &rt);
-        let (old_epoch, before) = served(&node);
+        let reader = node(dir.path(), &store, &rt);
+        let (old_epoch, before) = served(&reader);
         assert_eq!(before.len(), meshes.len());
 
         // The same node loads again, and another node commits a calibration between its read
         // and its lock: computed on half of the shapes, stored as calibrated on all of them
         // (so it fits, and only its epoch tells it apart).
-        let loaded = node.load_signatures().unwrap();
+        let loaded = reader.load_signatures().unwrap();
         assert_eq!(loaded.encoded_under, Some(old_epoch));
         assert!(loaded.scan.is_some(), "the scan was built while reading");
         let half: Vec<Signature> = before[..3]
             .iter()
             .map(|(id, _)| {
-                let bytes = node.block(store.signature(id)).unwrap().unwrap();
-                node.engine.decode_signature(&bytes).unwrap()
+                let bytes = reader.block(store.signature(id)).unwrap().unwrap();
+                reader.engine.decode_signature(&bytes).unwrap()
             })
             .collect();
-        let lock = node.block(store.lock_calibration()).unwrap();
+        let lock = reader.block(store.lock_calibration()).unwrap();
         let new_epoch = lock.next_epoch();
         assert!(new_epoch > old_epoch);
-        let other = node
+        let other = reader
             .engine
             .calibrate(&half.iter().collect::<Vec<_>>(), new_epoch);
-        node.commit_calibration(lock, new_epoch, meshes.len(), &other)
+        reader
+            .commit_calibration(lock, new_epoch, meshes.len(), &other)
             .unwrap();
 
-        let scan = node.calibrated_scan(loaded).unwrap();
+        let scan = reader.calibrated_scan(loaded).unwrap();
         assert_eq!(
-            node.engine.calibration_epoch(scan.calibration().unwrap()),
+            reader.engine.calibration_epoch(scan.calibration().unwrap()),
             new_epoch
         );
         assert_eq!(scan.calibrated_on(), meshes.len());
@@ -524,7 +475,7 @@ mod tests {
             "the other calibration encodes differently (else the test shows nothing)"
         );
         // A node that starts now reads the newer calibration before reading the signatures.
-        let later = app(dir.path(), &store, &rt);
+        let later = node(dir.path(), &store, &rt);
         assert_eq!(served(&later), (new_epoch, after));
     }
 }

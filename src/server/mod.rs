@@ -40,6 +40,8 @@ pub mod router;
 mod sample;
 pub mod shard;
 pub mod state;
+#[cfg(test)]
+mod test_support;
 pub mod web;
 
 pub use config::{MigrateArgs, ServeArgs, ServerConfig};

@@ -44,6 +44,8 @@
 //! * Schema versions: each backend refuses, with a message that says what to do, to open data
 //!   whose schema is older (migrate first) or newer (use a newer build) than this build's.
 
+#[cfg(test)]
+pub(crate) mod faulty;
 pub mod pg_migrate;
 pub mod postgres;
 pub mod sled_store;
