@@ -334,6 +334,11 @@ fn ingest_every_format_read_back_list_delete() {
     let page = get(a, "/v1/shapes?tag=mp").json();
     assert_eq!(page["items"].as_array().unwrap().len(), 1);
     assert_eq!(page["items"][0]["id"], mp_id.as_str());
+    // A filter no stored tag could be is refused as the same tag in an upload is (a NUL
+    // reached PostgreSQL and came back as 500).
+    for bad in ["%00", "", "a%0Ab", &"x".repeat(65)] {
+        get(a, &format!("/v1/shapes?tag={bad}")).problem(400, "request.invalid");
+    }
 
     // Delete: 204, then gone everywhere; the same bytes can be ingested anew.
     let (id0, b0) = &ids[0];

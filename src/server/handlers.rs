@@ -278,7 +278,7 @@ pub struct ListParams {
     pub limit: Option<usize>,
     /// `next_cursor` of the previous page.
     pub cursor: Option<String>,
-    /// Only shapes with this tag.
+    /// Only shapes with this tag (a valid tag: 1 to 64 characters, no control characters).
     pub tag: Option<String>,
 }
 
@@ -287,6 +287,9 @@ pub async fn list(State(app): AppState, Query(p): Query<ListParams>) -> Result<R
     let limit = p.limit.unwrap_or(50);
     if !(1..=1000).contains(&limit) {
         return Err(ApiError::invalid("limit must be in 1..=1000"));
+    }
+    if let Some(tag) = &p.tag {
+        validate_tags(std::slice::from_ref(tag))?;
     }
     let page = app
         .store
