@@ -143,8 +143,12 @@ impl App {
         let mut total = 0usize;
         loop {
             let page = self.block(self.store.scan_signatures(after.as_deref(), LOAD_PAGE))?;
-            let full = page.len() >= LOAD_PAGE;
-            after = page.last().map(|(r, _)| r.id.clone());
+            // The end is an empty page: a page may be short before it (a record whose
+            // signature is missing is left out of it).
+            let Some(last) = page.last().map(|(r, _)| r.id.clone()) else {
+                break;
+            };
+            after = Some(last);
             total += page.len();
             let mut own: Vec<(ShapeRecord, Signature)> = Vec::with_capacity(page.len());
             for (rec, bytes) in page {
@@ -191,9 +195,6 @@ impl App {
                     l.sample.offer(&rec.sha256, &rec.id, || Some(sig));
                 }
                 l.rows.push((rec.id, rec.name, rec.tags));
-            }
-            if !full {
-                break;
             }
         }
         if l.recomputed > 0 {
@@ -344,8 +345,10 @@ impl App {
                     break;
                 }
             };
-            let full = page.len() >= LOAD_PAGE;
-            after = page.last().map(|(r, _)| r.id.clone());
+            let Some(last) = page.last().map(|(r, _)| r.id.clone()) else {
+                break; // the end (see `load_signatures`)
+            };
+            after = Some(last);
             let mut wanted: Vec<(Meta, Vec<u8>)> = Vec::new();
             for (rec, bytes) in page {
                 while rows.peek().is_some_and(|r| r.0 < rec.id) {
@@ -369,9 +372,6 @@ impl App {
                     Some(e) => scan.push_encoded(id, name, tags, &e),
                     None => tracing::error!(id, "unreadable stored signature; left out"),
                 }
-            }
-            if !full {
-                break;
             }
         }
         scan
@@ -400,7 +400,9 @@ pub(super) fn moved(calibrated_on: usize, n: usize, fraction: f64) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::server::test_support::{ingest, meshes, node, runtime, sled_store, wait_idle};
+    use crate::server::test_support::{
+        ingest, meshes, node, node_with, runtime, sled_store, wait_idle,
+    };
 
     /// Every row of `scan` as (id, encoding), in scan order.
     fn encodings(scan: &ScanIndex) -> Vec<(String, Encoded)> {
@@ -477,5 +479,47 @@ mod tests {
         // A node that starts now reads the newer calibration before reading the signatures.
         let later = node(dir.path(), &store, &rt);
         assert_eq!(served(&later), (new_epoch, after));
+    }
+
+    /// A page shorter than asked for is not the end of the corpus (a backend leaves out a
+    /// record whose signature is missing): the load reads on until an empty page.
+    #[test]
+    fn short_pages_do_not_end_the_load() {
+        use crate::storage::faulty::Faulty;
+        use std::sync::atomic::Ordering;
+        let dir = tempfile::tempdir().unwrap();
+        let rt = runtime();
+        let faulty = Arc::new(Faulty::new(sled_store(dir.path(), &rt)));
+        let store: Arc<dyn ShapeStore> = faulty.clone();
+        let first = Arc::new(node(dir.path(), &store, &rt));
+        for (i, m) in meshes().iter().enumerate() {
+            ingest(&first, &rt, m, &format!("s{i}"));
+        }
+        wait_idle(&first);
+        let whole = served(&first);
+        drop(first);
+        faulty.page_cap.store(2, Ordering::SeqCst);
+        // The stored calibration's path (the scan built while reading) ...
+        let loaded = served(&node(dir.path(), &store, &rt));
+        assert_eq!(loaded.1.len(), whole.1.len(), "every shape loaded");
+        assert!(loaded == whole, "the same scan");
+        let n = rt
+            .block_on(crate::storage::for_each_signature(
+                &*store,
+                5,
+                |_, _| Ok(()),
+            ))
+            .unwrap();
+        assert_eq!(n, 6);
+        // ... and a recalibration at load on a sample of the shapes, every shape then encoded
+        // from a second read of the store.
+        let lock = rt.block_on(store.lock_calibration()).unwrap();
+        let epoch = lock.next_epoch();
+        let json = b"[]".to_vec(); // a calibration no engine reads: recalibrate
+        rt.block_on(lock.commit_as(epoch, 6, json)).unwrap();
+        let again = node_with(dir.path(), &store, &rt, |c| c.calibration_sample = 3);
+        let (e, rows) = served(&again);
+        assert!(e > epoch);
+        assert_eq!(rows.len(), 6);
     }
 }

@@ -44,12 +44,23 @@ pub fn node(
     store: &Arc<dyn ShapeStore>,
     rt: &tokio::runtime::Runtime,
 ) -> App {
-    let cfg = ServerConfig {
+    node_with(dir, store, rt, |_| {})
+}
+
+/// [`node`] with the configuration changed by `tweak`.
+pub fn node_with(
+    dir: &std::path::Path,
+    store: &Arc<dyn ShapeStore>,
+    rt: &tokio::runtime::Runtime,
+    tweak: impl FnOnce(&mut ServerConfig),
+) -> App {
+    let mut cfg = ServerConfig {
         data: dir.to_path_buf(),
         workers: 2,
         eigenpairs: K,
         ..ServerConfig::default()
     };
+    tweak(&mut cfg);
     App::load(cfg, engine(), store.clone(), rt.handle().clone()).unwrap()
 }
 

@@ -19,6 +19,9 @@ pub(crate) struct Faulty {
     pub commits_tried: Arc<AtomicUsize>,
     /// Reads of a shape's signature (`signature`) fail.
     pub fail_signature_reads: AtomicBool,
+    /// Pages of `scan_signatures` hold at most this many (0: no cap): short pages before the
+    /// end, as a backend may return.
+    pub page_cap: AtomicUsize,
 }
 
 impl Faulty {
@@ -28,6 +31,7 @@ impl Faulty {
             fail_commits: Arc::new(AtomicBool::new(false)),
             commits_tried: Arc::new(AtomicUsize::new(0)),
             fail_signature_reads: AtomicBool::new(false),
+            page_cap: AtomicUsize::new(0),
         }
     }
 
@@ -122,6 +126,10 @@ impl ShapeStore for Faulty {
         after: Option<&str>,
         limit: usize,
     ) -> Result<Vec<(ShapeRecord, Vec<u8>)>> {
+        let limit = match self.page_cap.load(Ordering::SeqCst) {
+            0 => limit,
+            cap => limit.min(cap),
+        };
         self.inner.scan_signatures(after, limit).await
     }
     async fn count(&self) -> Result<u64> {

@@ -198,7 +198,8 @@ pub trait ShapeStore: Send + Sync {
 
     /// (record, signature) pairs in id order after `after` (exclusive), at most `limit`: page
     /// through the whole corpus (loading, recalibration) without holding it all, see
-    /// [`for_each_signature`].
+    /// [`for_each_signature`]. A page may be shorter than `limit` before the end (a record
+    /// whose signature is missing is left out, logged); the end is an empty page.
     async fn scan_signatures(
         &self,
         after: Option<&str>,
@@ -244,16 +245,13 @@ where
         let page = store
             .scan_signatures(after.as_deref(), batch.max(1))
             .await?;
+        // The end is an empty page (see `ShapeStore::scan_signatures`).
         let Some(last) = page.last().map(|(r, _)| r.id.clone()) else {
             return Ok(n);
         };
-        let full = page.len() >= batch.max(1);
         for (rec, sig) in page {
             f(rec, sig)?;
             n += 1;
-        }
-        if !full {
-            return Ok(n);
         }
         after = Some(last);
     }
