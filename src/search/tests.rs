@@ -657,6 +657,37 @@ fn clustered_candidates_are_pruned() {
     assert_eq!((corpus.layout().group_bins, GROUPS), (32, 8));
 }
 
+/// A `k` past the corpus size (a shard request names any `k`) asks for every kept candidate,
+/// no more: nothing is reserved for candidates that cannot exist.
+#[test]
+fn k_past_the_corpus_size_ranks_every_kept_candidate() {
+    let l = layout(&["a"], 64, 0.64);
+    let rows: Vec<Encoded> = (0..40)
+        .map(|i| {
+            let m: Vec<f64> = (0..64).map(|b| 1.0 + ((b * (i + 1)) % 7) as f64).collect();
+            Encoded::from_prepared(
+                &prepared(
+                    &["a"],
+                    vec![Some(PreparedChannel::Histogram(hist(&m, 0.01)))],
+                ),
+                &l,
+            )
+        })
+        .collect();
+    let corpus = Corpus::build(l, &rows);
+    let q = Query::new(
+        &spec(&["a"], Dissimilarity::NL1, Aggregation::Sum),
+        corpus.layout(),
+    );
+    let all = rank_all(&corpus, &q, corpus.shape(3));
+    for k in [40, 41, 1 << 40, usize::MAX / 2, usize::MAX] {
+        let (got, _) = top_k(&corpus, &q, corpus.shape(3), k, &|_| true);
+        assert_eq!(got, all, "k = {k}");
+        let (odd, _) = top_k(&corpus, &q, corpus.shape(3), k, &|at| at % 2 == 1);
+        assert_eq!(odd.len(), 20, "k = {k}");
+    }
+}
+
 /// Stages in the configuration form read what they wrote; `none` entries of a list are
 /// skipped; the request form resolves defaults and refuses out-of-range values.
 #[test]

@@ -211,12 +211,13 @@ impl App {
         if let Err(e) = self.engine.validate_query(&req.spec) {
             return fail(StatusCode::BAD_REQUEST, "request.invalid", e.to_string());
         }
-        let deadline = Instant::now() + Duration::from_millis(req.budget_ms);
+        // A budget past what the clock can represent is no deadline (the message may say any).
+        let deadline = Instant::now().checked_add(Duration::from_millis(req.budget_ms));
         let n = self.scan.read().unwrap_or_else(|p| p.into_inner()).len();
         let app = self.clone();
         let res = self
             .admission
-            .run(Cost::search(n, &[]), Some(deadline), move |cancel| {
+            .run(Cost::search(n, &[]), deadline, move |cancel| {
                 let guard = app.scan.read().unwrap_or_else(|p| p.into_inner());
                 let s = &*guard;
                 let Some(cal) = s.calibration() else {
