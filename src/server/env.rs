@@ -36,7 +36,10 @@ pub(super) fn hits(mut list: Vec<Entry<Hitting>>, top_k: usize, epoch: u64) -> V
 pub(super) struct ServerEnv<'a> {
     pub(super) app: &'a App,
     pub(super) scan: Option<std::sync::RwLockReadGuard<'a, ScanIndex>>,
+    /// The query, encoded under the calibration of epoch `epoch`.
     pub(super) query: Encoded,
+    /// The calibration epoch the search ranks under (the scan's when it began).
+    pub(super) epoch: u64,
     pub(super) first: QuerySpec,
     pub(super) query_payload: Option<GwPayload>,
     /// The search's cancellation token.
@@ -45,12 +48,30 @@ pub(super) struct ServerEnv<'a> {
 
 impl ServerEnv<'_> {
     /// The scan, locked again after a stage that ran unlocked: positions may have moved, and
-    /// shapes deleted meanwhile leave `list`.
-    fn relocked(&mut self, list: &mut Vec<Entry<Hitting>>) -> &ScanIndex {
+    /// shapes deleted meanwhile leave `list`. A new calibration installed meanwhile is 503
+    /// `search.calibration_mismatch` with `Retry-After`: the rows are encoded under it and the
+    /// query is not, and scores under two calibrations do not compare.
+    fn relocked(&mut self, list: &mut Vec<Entry<Hitting>>) -> Result<&ScanIndex, ApiError> {
         if self.scan.is_none() {
-            let s = self
-                .scan
-                .insert(self.app.scan.read().unwrap_or_else(|p| p.into_inner()));
+            let guard = self.app.scan.read().unwrap_or_else(|p| p.into_inner());
+            let now = guard
+                .calibration()
+                .map_or(0, |c| self.app.engine.calibration_epoch(c));
+            if now != self.epoch {
+                return Err(ApiError {
+                    retry_after: Some(self.app.cfg.retry_after_secs),
+                    ..ApiError::new(
+                        axum::http::StatusCode::SERVICE_UNAVAILABLE,
+                        "search.calibration_mismatch",
+                        format!(
+                            "the index installed calibration epoch {now} while this search \
+                             (epoch {}) ran a spectral_gw stage; retry",
+                            self.epoch
+                        ),
+                    )
+                });
+            }
+            let s = self.scan.insert(guard);
             list.retain_mut(|e| match s.position(&e.item.id) {
                 Some(at) => {
                     e.at = at;
@@ -59,7 +80,7 @@ impl ServerEnv<'_> {
                 None => false,
             });
         }
-        self.scan.as_deref().expect("locked")
+        Ok(self.scan.as_deref().expect("locked"))
     }
 }
 
@@ -73,7 +94,7 @@ impl Env<Hitting> for ServerEnv<'_> {
     ) -> Result<Vec<f64>, ApiError> {
         self.cancel.check()?;
         let qv = self.query.clone();
-        let s = self.relocked(list);
+        let s = self.relocked(list)?;
         let c = s.corpus();
         Ok(rescore(
             c.layout(),
@@ -87,7 +108,7 @@ impl Env<Hitting> for ServerEnv<'_> {
         self.cancel.check()?;
         let qv = self.query.clone();
         let first = self.first.clone();
-        let s = self.relocked(list);
+        let s = self.relocked(list)?;
         let c = s.corpus();
         Ok(pairwise(
             c.layout(),
@@ -178,4 +199,65 @@ pub(super) fn gw_scores(
         .collect();
     cancel.check()?;
     scores.into_iter().collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::server::test_support::wait_idle;
+    use crate::server::test_support::{ingest, meshes, node, runtime, served_epoch, sled_store};
+    use std::sync::Arc;
+
+    /// A stage that reads the scan after a GW stage released it: under the search's own
+    /// calibration it scores the shortlist; under one installed meanwhile it answers 503
+    /// `search.calibration_mismatch` (the query would be compared under another calibration
+    /// than the rows).
+    #[test]
+    fn a_stage_after_gw_refuses_a_calibration_installed_meanwhile() {
+        let dir = tempfile::tempdir().unwrap();
+        let rt = runtime();
+        let store = sled_store(dir.path(), &rt);
+        let app = Arc::new(node(dir.path(), &store, &rt));
+        for (i, m) in meshes().iter().enumerate() {
+            ingest(&app, &rt, m, &format!("s{i}"));
+            wait_idle(&app);
+        }
+        let epoch = served_epoch(&app);
+        let query = app.scan.read().unwrap().corpus().encoded(0);
+        let shortlist = || -> Vec<Entry<Hitting>> {
+            let s = app.scan.read().unwrap();
+            (1..4)
+                .map(|at| Entry {
+                    at,
+                    item: Hitting {
+                        id: s.id(at).to_string(),
+                        name: s.name(at).to_string(),
+                    },
+                    score: 0.0,
+                    stage_scores: vec![0.0],
+                })
+                .collect()
+        };
+        let spec = app.engine.default_query();
+        let env = |epoch: u64| ServerEnv {
+            app: &app,
+            scan: None, // as after a GW stage
+            query: query.clone(),
+            epoch,
+            first: spec.clone(),
+            query_payload: None,
+            cancel: Cancel::never(),
+        };
+        let scores = env(epoch).rescore(&mut shortlist(), &spec).unwrap();
+        assert_eq!(scores.len(), 3);
+        assert!(scores.iter().all(|s| s.is_finite()));
+        for older in [epoch - 1, 0] {
+            let e = env(older).rescore(&mut shortlist(), &spec).unwrap_err();
+            assert_eq!(e.status, axum::http::StatusCode::SERVICE_UNAVAILABLE);
+            assert_eq!(e.code, "search.calibration_mismatch");
+            assert_eq!(e.retry_after, Some(app.cfg.retry_after_secs));
+            let e = env(older).pairwise(&mut shortlist()).unwrap_err();
+            assert_eq!(e.code, "search.calibration_mismatch");
+        }
+    }
 }

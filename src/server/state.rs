@@ -671,6 +671,7 @@ impl App {
                     app: &app,
                     scan: Some(guard),
                     query,
+                    epoch,
                     first: spec,
                     query_payload,
                     cancel: cancel.clone(),
