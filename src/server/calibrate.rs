@@ -146,11 +146,15 @@ impl App {
                 if self.shard().is_none() && (cap == 0 || snapshot.len() <= cap) {
                     // Every held shape: their signatures (not kept in memory) read from the store,
                     // outside the lock, once for the calibration and its encoding.
-                    let sigs: Vec<(usize, Signature)> = snapshot
+                    let read: crate::Result<Vec<Option<(usize, Signature)>>> = snapshot
                         .par_iter()
                         .enumerate()
-                        .filter_map(|(i, id)| self.stored_signature(id).map(|s| (i, s)))
+                        .map(|(i, id)| Ok(self.read_signature(id)?.map(|s| (i, s))))
                         .collect();
+                    let sigs: Vec<(usize, Signature)> = match read {
+                        Ok(v) => v.into_iter().flatten().collect(),
+                        Err(e) => return self.give_up(lock, &e),
+                    };
                     let cal = {
                         let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
                         Arc::new(self.engine.calibrate(&refs, epoch))
@@ -170,14 +174,20 @@ impl App {
                     // A large corpus, or a shard of one: the calibration sample of every stored
                     // shape (`src/server/sample.rs`), then each held shape re-encoded from its
                     // stored signature, one at a time.
-                    let sample = self.stored_sample();
+                    let sample = match self.stored_sample() {
+                        Ok(s) => s,
+                        Err(e) => return self.give_up(lock, &e),
+                    };
                     let on = sample.offered();
                     let cal = {
                         let sigs = sample.into_signatures();
                         let refs: Vec<&Signature> = sigs.iter().map(|(_, s)| s).collect();
                         Arc::new(self.engine.calibrate(&refs, epoch))
                     };
-                    let encoded = self.reencoded(&snapshot, &cal);
+                    let encoded = match self.reencoded(&snapshot, &cal) {
+                        Ok(e) => e,
+                        Err(e) => return self.give_up(lock, &e),
+                    };
                     (cal, on, encoded)
                 };
             let layout = Layout::of(&cal);
@@ -209,23 +219,44 @@ impl App {
         }
     }
 
+    /// A recalibration given up because the store could not be read (`e`, logged): the lock
+    /// released, nothing committed or installed; the next change (or reconciliation) tries
+    /// again. True, as [`App::recalibrate_loop`] answers when it yields.
+    fn give_up(&self, lock: crate::storage::CalibrationLock, e: &crate::Error) -> bool {
+        tracing::error!(error = %e, "could not read the store; recalibration given up");
+        if let Err(e) = self.block(lock.release()) {
+            tracing::warn!(error = %e, "releasing the calibration lock");
+        }
+        true
+    }
+
     /// The shapes `ids` encoded under `cal` from their stored signatures, each read, encoded
-    /// and dropped in turn (absent when missing or unreadable).
-    fn reencoded(&self, ids: &[String], cal: &Calibration) -> Vec<Encoded> {
+    /// and dropped in turn (absent when gone or undecodable); an error when the store could not
+    /// be read (a shape made absent by a passing fault would stay unsearchable).
+    fn reencoded(&self, ids: &[String], cal: &Calibration) -> crate::Result<Vec<Encoded>> {
         let layout = Layout::of(cal);
         ids.par_iter()
-            .map(|id| match self.stored_signature(id) {
-                Some(s) => Encoded::from_signature(&s, cal, &layout),
-                None => Encoded::absent(&layout),
+            .map(|id| {
+                Ok(match self.read_signature(id)? {
+                    Some(s) => Encoded::from_signature(&s, cal, &layout),
+                    None => Encoded::absent(&layout),
+                })
             })
             .collect()
     }
 
     /// Installs `cal` (computed on `on` shapes): every held shape re-encoded from its stored
-    /// signature. Blocking, CPU-bound.
+    /// signature. Blocking, CPU-bound. Nothing changes when the store could not be read
+    /// (logged; the caller's next reconciliation or search tries again).
     pub(super) fn install(&self, cal: Arc<Calibration>, on: usize) {
         let snapshot = self.scan.read().unwrap_or_else(|p| p.into_inner()).ids();
-        let encoded = self.reencoded(&snapshot, &cal);
+        let encoded = match self.reencoded(&snapshot, &cal) {
+            Ok(e) => e,
+            Err(e) => {
+                tracing::error!(error = %e, "could not read the store; calibration not installed");
+                return;
+            }
+        };
         let corpus = Corpus::build(Layout::of(&cal), &encoded);
         drop(encoded);
         let epoch = self.engine.calibration_epoch(&cal);
@@ -270,18 +301,13 @@ impl App {
 
     /// The calibration sample of every stored shape (`src/server/sample.rs`): the records
     /// listed page by page, then the members' signatures read. A sharded node learns the whole
-    /// corpus's size here too.
-    fn stored_sample(&self) -> Sample {
+    /// corpus's size here too. An error when the store could not be read: a sample of part of
+    /// the corpus would be committed for every node.
+    fn stored_sample(&self) -> crate::Result<Sample> {
         let mut sample = Sample::new(self.cfg.calibration_sample);
         let mut after: Option<String> = None;
         loop {
-            let page = match self.block(self.store.list(after.as_deref(), None, LIST_PAGE)) {
-                Ok(p) => p,
-                Err(e) => {
-                    tracing::error!(error = %e, "could not list the stored shapes");
-                    break;
-                }
-            };
+            let page = self.block(self.store.list(after.as_deref(), None, LIST_PAGE))?;
             for r in &page.records {
                 sample.offer_id(&r.sha256, &r.id);
             }
@@ -293,26 +319,48 @@ impl App {
         if let Some(sh) = self.shard() {
             sh.set_total(sample.offered());
         }
-        sample.fill(|id| self.stored_signature(id));
-        sample
+        self.fill_sample(&mut sample)?;
+        Ok(sample)
     }
 
-    /// The stored signature of `id` (`None`, logged, when it is missing or unreadable).
-    pub(super) fn stored_signature(&self, id: &str) -> Option<Signature> {
-        match self.block(self.store.signature(id)) {
-            Ok(Some(b)) => match self.engine.decode_signature(&b) {
+    /// Reads the signatures of `sample`'s members; an error when the store could not be read
+    /// (a calibration on the members that could be read would not be the sample's).
+    pub(super) fn fill_sample(&self, sample: &mut Sample) -> crate::Result<()> {
+        let failed = std::sync::Mutex::new(None);
+        sample.fill(|id| match self.read_signature(id) {
+            Ok(s) => s,
+            Err(e) => {
+                *failed.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
+                None
+            }
+        });
+        match failed.into_inner().unwrap_or_else(|p| p.into_inner()) {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+
+    /// The stored signature of `id`: `None` when the shape is gone, or its signature does not
+    /// decode (logged); an error when the store could not be read.
+    pub(super) fn read_signature(&self, id: &str) -> crate::Result<Option<Signature>> {
+        Ok(match self.block(self.store.signature(id))? {
+            Some(b) => match self.engine.decode_signature(&b) {
                 Ok(s) => Some(s),
                 Err(e) => {
                     tracing::error!(id, error = %e, "unreadable stored signature");
                     None
                 }
             },
-            Ok(None) => None,
-            Err(e) => {
-                tracing::error!(id, error = %e, "could not read a stored signature");
-                None
-            }
-        }
+            None => None,
+        })
+    }
+
+    /// [`App::read_signature`] with a store error logged as `None`.
+    pub(super) fn stored_signature(&self, id: &str) -> Option<Signature> {
+        self.read_signature(id).unwrap_or_else(|e| {
+            tracing::error!(id, error = %e, "could not read a stored signature");
+            None
+        })
     }
 }
 
@@ -404,5 +452,69 @@ mod tests {
         let newer = Arc::new(app.engine.calibrate(&refs, held + 1));
         app.install(newer, sigs.len());
         assert_eq!(served_epoch(&app), held + 1, "a newer one is installed");
+    }
+
+    /// A recalibration that cannot read the store (signature reads fail) gives up: nothing
+    /// committed, nothing installed, no shape made absent; once the store reads again the
+    /// next change recalibrates. On both paths: every held shape's signature read, and a
+    /// sample of the store (here 2 shapes).
+    #[test]
+    fn a_recalibration_that_cannot_read_the_store_changes_nothing() {
+        for cap in [None, Some(2)] {
+            let dir = tempfile::tempdir().unwrap();
+            let rt = runtime();
+            let faulty = Arc::new(Faulty::new(crate::server::test_support::sled_store(
+                dir.path(),
+                &rt,
+            )));
+            let store: Arc<dyn ShapeStore> = faulty.clone();
+            let app = Arc::new(crate::server::test_support::node_with(
+                dir.path(),
+                &store,
+                &rt,
+                |c| {
+                    if let Some(cap) = cap {
+                        c.calibration_sample = cap;
+                    }
+                },
+            ));
+            let meshes = meshes();
+            for (i, m) in meshes[..3].iter().enumerate() {
+                ingest(&app, &rt, m, &format!("s{i}"));
+                wait_idle(&app);
+            }
+            let stored = || app.block(store.calibration()).unwrap().unwrap();
+            let before = stored();
+            let rows = |n: usize| -> Vec<Encoded> {
+                let s = app.scan.read().unwrap();
+                (0..n).map(|at| s.corpus().encoded(at)).collect()
+            };
+            let held = rows(3);
+
+            faulty.fail_signature_reads.store(true, Ordering::SeqCst);
+            for (i, m) in meshes[3..5].iter().enumerate() {
+                ingest(&app, &rt, m, &format!("t{i}"));
+                wait_idle(&app);
+            }
+            assert_eq!(stored().epoch, before.epoch, "{cap:?}: nothing committed");
+            assert_eq!(
+                served_epoch(&app),
+                before.epoch,
+                "{cap:?}: nothing installed"
+            );
+            assert!(
+                rows(3) == held,
+                "{cap:?}: the held shapes keep their encodings"
+            );
+            assert!(app.needs_recalibration(), "{cap:?}: still due");
+
+            faulty.fail_signature_reads.store(false, Ordering::SeqCst);
+            ingest(&app, &rt, &meshes[5], "u");
+            wait_idle(&app);
+            let after = stored();
+            assert!(after.epoch > before.epoch, "{cap:?}");
+            assert_eq!(after.calibrated_on, 6, "{cap:?}");
+            assert_eq!(served_epoch(&app), after.epoch, "{cap:?}");
+        }
     }
 }

@@ -300,7 +300,7 @@ impl App {
                 drop(l.scan);
                 let whole = l.sample.is_whole() && self.shard().is_none();
                 let mut sample = l.sample;
-                sample.fill(|id| self.stored_signature(id));
+                self.fill_sample(&mut sample)?;
                 let sigs = sample.into_signatures();
                 let epoch = lock.next_epoch();
                 let cal = {
