@@ -90,10 +90,14 @@ pub fn top_k(
     k: usize,
     keep: &(dyn Fn(usize) -> bool + Sync),
 ) -> (Vec<(usize, f64)>, usize) {
-    // More than the corpus holds is the whole corpus (a shard request may name any `k`; the
-    // buffers below are sized by it).
-    let k = k.min(corpus.len());
-    search(corpus, q, query, k, keep, FIRST_BATCH.max(4 * k))
+    search(
+        corpus,
+        q,
+        query,
+        k,
+        keep,
+        FIRST_BATCH.max(k.saturating_mul(4)),
+    )
 }
 
 /// The filter-and-refine loop.
@@ -115,6 +119,8 @@ pub(crate) fn search(
     keep: &(dyn Fn(usize) -> bool + Sync),
     first_batch: usize,
 ) -> (Vec<(usize, f64)>, usize) {
+    // More than the corpus holds is the whole corpus (a shard request may name any `k`; the
+    // buffers below are sized by it).
     let k = k.min(corpus.len());
     if k == 0 {
         return (Vec::new(), 0);

@@ -371,28 +371,62 @@ mod tests {
     use crate::storage::faulty::Faulty;
     use crate::storage::ShapeStore;
 
+    /// A node (configured by `tweak`) on a sled store behind [`Faulty`], holding the first
+    /// three of [`meshes`] under a committed calibration.
+    struct OnFaulty {
+        app: Arc<App>,
+        store: Arc<dyn ShapeStore>,
+        faulty: Arc<Faulty>,
+        rt: tokio::runtime::Runtime,
+        _dir: tempfile::TempDir,
+    }
+
+    impl OnFaulty {
+        fn start(tweak: impl FnOnce(&mut crate::server::ServerConfig)) -> OnFaulty {
+            let dir = tempfile::tempdir().unwrap();
+            let rt = runtime();
+            let faulty = Arc::new(Faulty::new(crate::server::test_support::sled_store(
+                dir.path(),
+                &rt,
+            )));
+            let store: Arc<dyn ShapeStore> = faulty.clone();
+            let app = Arc::new(crate::server::test_support::node_with(
+                dir.path(),
+                &store,
+                &rt,
+                tweak,
+            ));
+            for (i, m) in meshes()[..3].iter().enumerate() {
+                ingest(&app, &rt, m, &format!("s{i}"));
+                wait_idle(&app);
+            }
+            OnFaulty {
+                app,
+                store,
+                faulty,
+                rt,
+                _dir: dir,
+            }
+        }
+
+        /// The store's calibration.
+        fn stored(&self) -> crate::storage::StoredCalibration {
+            self.app.block(self.store.calibration()).unwrap().unwrap()
+        }
+    }
+
     /// A recalibration whose commit fails installs nothing: the node keeps ranking with the
     /// stored epoch (an epoch only it held would match no peer, and another node's later
     /// commit of the same number would be another calibration). The next change commits and
     /// installs one.
     #[test]
     fn a_calibration_that_could_not_be_committed_is_not_installed() {
-        let dir = tempfile::tempdir().unwrap();
-        let rt = runtime();
-        let faulty = Arc::new(Faulty::new(crate::server::test_support::sled_store(
-            dir.path(),
-            &rt,
-        )));
-        let store: Arc<dyn ShapeStore> = faulty.clone();
-        let app = Arc::new(node(dir.path(), &store, &rt));
+        let n = OnFaulty::start(|_| {});
+        let (app, rt, faulty) = (&n.app, &n.rt, &n.faulty);
         let meshes = meshes();
-        for (i, m) in meshes[..3].iter().enumerate() {
-            ingest(&app, &rt, m, &format!("s{i}"));
-            wait_idle(&app);
-        }
-        let stored = || app.block(store.calibration()).unwrap().unwrap();
+        let stored = || n.stored();
         let before = stored();
-        assert_eq!(served_epoch(&app), before.epoch);
+        assert_eq!(served_epoch(app), before.epoch);
         assert_eq!(before.calibrated_on, 3);
 
         // Two more shapes move the corpus past `recalibrate_fraction`: the recalibration runs
@@ -400,26 +434,26 @@ mod tests {
         faulty.fail_commits.store(true, Ordering::SeqCst);
         let tried = faulty.commits_tried.load(Ordering::SeqCst);
         for (i, m) in meshes[3..5].iter().enumerate() {
-            ingest(&app, &rt, m, &format!("t{i}"));
-            wait_idle(&app);
+            ingest(app, rt, m, &format!("t{i}"));
+            wait_idle(app);
         }
         assert!(
             faulty.commits_tried.load(Ordering::SeqCst) > tried,
             "a commit was tried"
         );
         assert_eq!(stored().epoch, before.epoch, "nothing committed");
-        assert_eq!(served_epoch(&app), before.epoch, "nothing installed");
+        assert_eq!(served_epoch(app), before.epoch, "nothing installed");
         assert_eq!(app.scan.read().unwrap().calibrated_on(), 3);
         assert!(app.needs_recalibration(), "still due");
 
         // The store works again: the next change recalibrates, commits and installs.
         faulty.fail_commits.store(false, Ordering::SeqCst);
-        ingest(&app, &rt, &meshes[5], "u");
-        wait_idle(&app);
+        ingest(app, rt, &meshes[5], "u");
+        wait_idle(app);
         let after = stored();
         assert!(after.epoch > before.epoch);
         assert_eq!(after.calibrated_on, 6);
-        assert_eq!(served_epoch(&app), after.epoch);
+        assert_eq!(served_epoch(app), after.epoch);
         assert!(!app.needs_recalibration());
     }
 
@@ -461,29 +495,14 @@ mod tests {
     #[test]
     fn a_recalibration_that_cannot_read_the_store_changes_nothing() {
         for cap in [None, Some(2)] {
-            let dir = tempfile::tempdir().unwrap();
-            let rt = runtime();
-            let faulty = Arc::new(Faulty::new(crate::server::test_support::sled_store(
-                dir.path(),
-                &rt,
-            )));
-            let store: Arc<dyn ShapeStore> = faulty.clone();
-            let app = Arc::new(crate::server::test_support::node_with(
-                dir.path(),
-                &store,
-                &rt,
-                |c| {
-                    if let Some(cap) = cap {
-                        c.calibration_sample = cap;
-                    }
-                },
-            ));
+            let n = OnFaulty::start(|c| {
+                if let Some(cap) = cap {
+                    c.calibration_sample = cap;
+                }
+            });
+            let (app, rt, faulty) = (&n.app, &n.rt, &n.faulty);
             let meshes = meshes();
-            for (i, m) in meshes[..3].iter().enumerate() {
-                ingest(&app, &rt, m, &format!("s{i}"));
-                wait_idle(&app);
-            }
-            let stored = || app.block(store.calibration()).unwrap().unwrap();
+            let stored = || n.stored();
             let before = stored();
             let rows = |n: usize| -> Vec<Encoded> {
                 let s = app.scan.read().unwrap();
@@ -493,12 +512,12 @@ mod tests {
 
             faulty.fail_signature_reads.store(true, Ordering::SeqCst);
             for (i, m) in meshes[3..5].iter().enumerate() {
-                ingest(&app, &rt, m, &format!("t{i}"));
-                wait_idle(&app);
+                ingest(app, rt, m, &format!("t{i}"));
+                wait_idle(app);
             }
             assert_eq!(stored().epoch, before.epoch, "{cap:?}: nothing committed");
             assert_eq!(
-                served_epoch(&app),
+                served_epoch(app),
                 before.epoch,
                 "{cap:?}: nothing installed"
             );
@@ -509,12 +528,12 @@ mod tests {
             assert!(app.needs_recalibration(), "{cap:?}: still due");
 
             faulty.fail_signature_reads.store(false, Ordering::SeqCst);
-            ingest(&app, &rt, &meshes[5], "u");
-            wait_idle(&app);
+            ingest(app, rt, &meshes[5], "u");
+            wait_idle(app);
             let after = stored();
             assert!(after.epoch > before.epoch, "{cap:?}");
             assert_eq!(after.calibrated_on, 6, "{cap:?}");
-            assert_eq!(served_epoch(&app), after.epoch, "{cap:?}");
+            assert_eq!(served_epoch(app), after.epoch, "{cap:?}");
         }
     }
 }
