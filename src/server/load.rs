@@ -291,7 +291,7 @@ impl App {
                     scan => {
                         // Another node recalibrated while this one read.
                         drop(scan);
-                        Ok(self.encode_rows(cal, on, l.rows))
+                        self.encode_rows(cal, on, l.rows)
                     }
                 }
             }
@@ -322,7 +322,7 @@ impl App {
                     Ok(ScanIndex::build(cal, n, rows))
                 } else {
                     drop(sigs);
-                    Ok(self.encode_rows(cal, n, l.rows))
+                    self.encode_rows(cal, n, l.rows)
                 }
             }
         }
@@ -330,21 +330,21 @@ impl App {
 
     /// The scan over `rows` (in id order) under `cal`, their signatures read again from the
     /// store page by page (a row whose signature is gone or unreadable is left out; the
-    /// replica's reconciliation settles it).
-    fn encode_rows(&self, cal: Arc<Calibration>, on: usize, rows: Vec<Meta>) -> ScanIndex {
+    /// replica's reconciliation settles it). A store that cannot be read fails the load with
+    /// its error: a scan of the rows read so far would serve a part of the corpus as the whole.
+    fn encode_rows(
+        &self,
+        cal: Arc<Calibration>,
+        on: usize,
+        rows: Vec<Meta>,
+    ) -> crate::Result<ScanIndex> {
         use rayon::prelude::*;
         let layout = Layout::of(&cal);
         let mut scan = ScanIndex::with_capacity(cal.clone(), on, rows.len());
         let mut rows = rows.into_iter().peekable();
         let mut after: Option<String> = None;
         while rows.peek().is_some() {
-            let page = match self.block(self.store.scan_signatures(after.as_deref(), LOAD_PAGE)) {
-                Ok(p) => p,
-                Err(e) => {
-                    tracing::error!(error = %e, "could not read the stored signatures");
-                    break;
-                }
-            };
+            let page = self.block(self.store.scan_signatures(after.as_deref(), LOAD_PAGE))?;
             let Some(last) = page.last().map(|(r, _)| r.id.clone()) else {
                 break; // the end (see `load_signatures`)
             };
@@ -374,7 +374,7 @@ impl App {
                 }
             }
         }
-        scan
+        Ok(scan)
     }
 
     /// Writes `cal` (computed on `on` shapes) as `epoch` (at least the lock's next), durably.
@@ -479,6 +479,65 @@ mod tests {
         // A node that starts now reads the newer calibration before reading the signatures.
         let later = node(dir.path(), &store, &rt);
         assert_eq!(served(&later), (new_epoch, after));
+    }
+
+    /// The load reads the signatures a second time when the scan built while reading cannot
+    /// be served (a newer calibration was committed meanwhile, or a recalibration on a sample
+    /// of the corpus). A store that fails during that read fails the load with its error, on
+    /// both paths, instead of serving the shapes read before the failure as the whole corpus.
+    #[test]
+    fn a_store_that_fails_during_the_second_read_fails_the_load() {
+        use crate::storage::faulty::Faulty;
+        use std::sync::atomic::Ordering;
+        let dir = tempfile::tempdir().unwrap();
+        let rt = runtime();
+        let faulty = Arc::new(Faulty::new(sled_store(dir.path(), &rt)));
+        let store: Arc<dyn ShapeStore> = faulty.clone();
+        let first = Arc::new(node(dir.path(), &store, &rt));
+        let meshes = meshes();
+        for (i, m) in meshes.iter().enumerate() {
+            ingest(&first, &rt, m, &format!("s{i}"));
+        }
+        wait_idle(&first);
+        drop(first);
+        let reader = node_with(dir.path(), &store, &rt, |c| c.calibration_sample = 3);
+        let (epoch, rows) = served(&reader);
+        assert_eq!(rows.len(), meshes.len());
+        // `json` committed as the next epoch, computed on every shape.
+        let commit = |json: Vec<u8>| {
+            let lock = rt.block_on(store.lock_calibration()).unwrap();
+            let next = lock.next_epoch();
+            rt.block_on(lock.commit_as(next, meshes.len() as u64, json))
+                .unwrap();
+            next
+        };
+        let expect_failure = |loaded: Loaded, path: &str| {
+            faulty.fail_scans.store(true, Ordering::SeqCst);
+            let got = reader.calibrated_scan(loaded);
+            faulty.fail_scans.store(false, Ordering::SeqCst);
+            match got {
+                Err(e) => assert!(e.to_string().contains("injected"), "{path}: {e}"),
+                Ok(scan) => panic!("{path}: the load served {} of 6 shapes", scan.len()),
+            }
+        };
+
+        // A newer calibration that fits, committed between the read and the lock.
+        let loaded = reader.load_signatures().unwrap();
+        assert_eq!(loaded.encoded_under, Some(epoch));
+        let cal =
+            serde_json::to_vec(&**reader.scan.read().unwrap().calibration().unwrap()).unwrap();
+        assert!(commit(cal) > epoch);
+        expect_failure(loaded, "newer calibration");
+
+        // No usable calibration: one is computed on a sample of 3, then every shape encoded.
+        commit(b"[]".to_vec());
+        let loaded = reader.load_signatures().unwrap();
+        assert_eq!(loaded.encoded_under, None);
+        expect_failure(loaded, "recalibration on a sample");
+
+        // With the store back, the same load serves every shape.
+        let back = node_with(dir.path(), &store, &rt, |c| c.calibration_sample = 3);
+        assert_eq!(served(&back).1.len(), meshes.len());
     }
 
     /// A page shorter than asked for is not the end of the corpus (a backend leaves out a

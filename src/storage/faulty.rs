@@ -19,6 +19,8 @@ pub(crate) struct Faulty {
     pub commits_tried: Arc<AtomicUsize>,
     /// Reads of a shape's signature (`signature`) fail.
     pub fail_signature_reads: AtomicBool,
+    /// Reads of a page of signatures (`scan_signatures`) fail.
+    pub fail_scans: AtomicBool,
     /// Pages of `scan_signatures` hold at most this many (0: no cap): short pages before the
     /// end, as a backend may return.
     pub page_cap: AtomicUsize,
@@ -31,6 +33,7 @@ impl Faulty {
             fail_commits: Arc::new(AtomicBool::new(false)),
             commits_tried: Arc::new(AtomicUsize::new(0)),
             fail_signature_reads: AtomicBool::new(false),
+            fail_scans: AtomicBool::new(false),
             page_cap: AtomicUsize::new(0),
         }
     }
@@ -126,6 +129,9 @@ impl ShapeStore for Faulty {
         after: Option<&str>,
         limit: usize,
     ) -> Result<Vec<(ShapeRecord, Vec<u8>)>> {
+        if self.fail_scans.load(Ordering::SeqCst) {
+            return Err(Faulty::injected("page of signatures"));
+        }
         let limit = match self.page_cap.load(Ordering::SeqCst) {
             0 => limit,
             cap => limit.min(cap),
