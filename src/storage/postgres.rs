@@ -19,7 +19,10 @@
 //!   `SELECT … FROM calibration FOR UPDATE` (or `SKIP LOCKED` to try); committing writes the next
 //!   epoch in that transaction. If the holder dies, PostgreSQL ends its session and the lock with
 //!   it; a lock dropped without commit discards its connection (so no half-open transaction goes
-//!   back to the pool).
+//!   back to the pool). If the holder's host goes away without closing the connection (power
+//!   lost, cut off), the server learns it from TCP only: the lock's transaction sets keepalives
+//!   and a user timeout on its connection (`LOCK_BEGIN`) so that the session ends, and the lock
+//!   is free, within about half a minute instead of the two hours of the system's defaults.
 
 use super::pg_migrate::{self, describe, pg, Prepared, PG_SCHEMA_VERSION};
 use super::{
@@ -168,7 +171,7 @@ impl PgStore {
             client: Some(client),
         };
         let c = holder.client.as_ref().expect("just set");
-        c.batch_execute("BEGIN").await.map_err(pg("BEGIN"))?;
+        c.batch_execute(LOCK_BEGIN).await.map_err(pg("BEGIN"))?;
         let sql = if skip {
             "SELECT epoch, calibrated_on, body::text FROM calibration WHERE singleton \
              FOR UPDATE SKIP LOCKED"
@@ -209,6 +212,24 @@ fn calibration_from(
         json: body.into_bytes(),
     }))
 }
+
+/// Opens the calibration lock's transaction. The row lock lives as long as the session, and a
+/// session whose client's host went away without closing it (power lost, network cut) lives on
+/// until TCP gives up: with the system's defaults, two hours of idle before the first
+/// keepalive probe (the holder computing, or a waiter that got the lock after it vanished, its
+/// answer unacknowledged, about fifteen minutes of retransmissions). For this transaction only
+/// (`SET LOCAL`: the pooled connection gets its settings back at its end), the server probes
+/// after 10 s idle, every 5 s, and drops the connection after 3 unanswered probes or 30 s of
+/// unacknowledged data: a vanished holder's lock is free after about 25–30 s, and a live
+/// holder, however long it computes, answers the probes from its kernel. The settings act on
+/// TCP connections only (a Unix socket's peer is on the server's own host).
+/// `tests/postgres.rs` `a_calibration_lock_held_from_a_vanished_host_is_freed` cuts a holder
+/// off in a network namespace and measures it.
+const LOCK_BEGIN: &str = "BEGIN; \
+    SET LOCAL tcp_keepalives_idle = 10; \
+    SET LOCAL tcp_keepalives_interval = 5; \
+    SET LOCAL tcp_keepalives_count = 3; \
+    SET LOCAL tcp_user_timeout = 30000";
 
 /// A connection inside the calibration transaction.
 struct PgLock {

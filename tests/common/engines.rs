@@ -92,8 +92,20 @@ pub struct PrivatePg {
 }
 
 impl PrivatePg {
-    /// Creates and starts an instance in `dir` (created if missing); Err says why not.
+    /// Creates and starts an instance in `dir` (created if missing), listening on 127.0.0.1;
+    /// Err says why not.
     pub fn start(bin: &Path, dir: &Path) -> Result<PrivatePg, String> {
+        PrivatePg::start_with(bin, dir, &[], &[])
+    }
+
+    /// [`PrivatePg::start`] also listening on the addresses `listen` and trusting clients from
+    /// the networks `clients` (CIDR; 127.0.0.1 is always trusted).
+    pub fn start_with(
+        bin: &Path,
+        dir: &Path,
+        listen: &[&str],
+        clients: &[&str],
+    ) -> Result<PrivatePg, String> {
         let root = is_root();
         std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
         if root {
@@ -120,9 +132,24 @@ impl PrivatePg {
                 String::from_utf8_lossy(&out.stderr)
             ));
         }
+        if !clients.is_empty() {
+            use std::io::Write;
+            let hba = data.join("pg_hba.conf");
+            let mut f = std::fs::OpenOptions::new()
+                .append(true)
+                .open(&hba)
+                .map_err(|e| format!("{}: {e}", hba.display()))?;
+            for c in clients {
+                writeln!(f, "host all all {c} trust").map_err(|e| format!("pg_hba: {e}"))?;
+            }
+        }
         let port = free_port();
+        let addresses = std::iter::once("127.0.0.1")
+            .chain(listen.iter().copied())
+            .collect::<Vec<_>>()
+            .join(",");
         let opts = format!(
-            "-p {port} -k {} -c listen_addresses=127.0.0.1 -c max_connections=200",
+            "-p {port} -k {} -c listen_addresses={addresses} -c max_connections=200",
             dir.display()
         );
         let out = as_pg_user(root, &bin.join("pg_ctl"))
