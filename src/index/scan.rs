@@ -176,6 +176,24 @@ pub struct Scored {
     pub score: f64,
 }
 
+/// `corpus`, the encoding of the sorted ids `snapshot`, re-keyed to `ids` (sorted): the row of
+/// an id in the snapshot is copied, any other comes from `encode`, called in `ids` order.
+pub fn rekey<'a>(
+    corpus: &Corpus,
+    snapshot: &[String],
+    ids: impl ExactSizeIterator<Item = &'a str>,
+    encode: &mut dyn FnMut(&str) -> Encoded,
+) -> Corpus {
+    let mut c = Corpus::with_capacity(corpus.layout().clone(), ids.len());
+    for id in ids {
+        match snapshot.binary_search_by(|s| s.as_str().cmp(id)) {
+            Ok(j) => c.push(&corpus.encoded(j)),
+            Err(_) => c.push(&encode(id)),
+        }
+    }
+    c
+}
+
 impl ScanIndex {
     /// The current calibration (None only while the index has never held a shape).
     pub fn calibration(&self) -> Option<&Arc<Calibration>> {
@@ -380,15 +398,8 @@ impl ScanIndex {
             corpus
         } else {
             let layout = corpus.layout().clone();
-            let mut c = Corpus::with_capacity(layout.clone(), self.len());
-            for i in 0..self.len() {
-                let id = self.id(i);
-                match snapshot.binary_search_by(|s| s.as_str().cmp(id)) {
-                    Ok(j) => c.push(&corpus.encoded(j)),
-                    Err(_) => c.push(&encode(id, &cal, &layout)),
-                }
-            }
-            c
+            let ids = (0..self.len()).map(|i| self.id(i));
+            rekey(&corpus, snapshot, ids, &mut |id| encode(id, &cal, &layout))
         };
         self.calibration = Some(cal);
         self.calibrated_on = calibrated_on;

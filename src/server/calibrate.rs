@@ -276,6 +276,8 @@ impl App {
         snapshot: &[String],
         corpus: Corpus,
     ) -> bool {
+        let (snapshot, corpus) = self.caught_up(&cal, snapshot, corpus);
+        let snapshot = &snapshot[..];
         let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
         let epoch = self.engine.calibration_epoch(&cal);
         if let Some(held) = scan.calibration().map(|c| self.engine.calibration_epoch(c)) {
@@ -297,6 +299,44 @@ impl App {
         drop(scan);
         self.update_gauges();
         true
+    }
+
+    /// `corpus` (the encoding of `snapshot` under `cal`) brought up to the scan's ids of now:
+    /// the shapes added since the snapshot (the inserts during a recalibration) are read from
+    /// the store and encoded here, before [`App::install_built`] takes the scan's write lock,
+    /// under which every search waits. Under it only the rows are copied, and only the shapes
+    /// added in between are read (one store round trip each on PostgreSQL).
+    fn caught_up(
+        &self,
+        cal: &Calibration,
+        snapshot: &[String],
+        corpus: Corpus,
+    ) -> (Vec<String>, Corpus) {
+        let now = self.scan.read().unwrap_or_else(|p| p.into_inner()).ids();
+        let added: Vec<&String> = now
+            .iter()
+            .filter(|id| snapshot.binary_search(id).is_err())
+            .collect();
+        if added.is_empty() {
+            // Deletions only: leaving rows out under the lock reads nothing.
+            return (snapshot.to_vec(), corpus);
+        }
+        let layout = corpus.layout().clone();
+        let fresh: Vec<Encoded> = added
+            .par_iter()
+            .map(|id| match self.stored_signature(id) {
+                Some(s) => Encoded::from_signature(&s, cal, &layout),
+                None => Encoded::absent(&layout),
+            })
+            .collect();
+        let mut fresh = fresh.into_iter();
+        let corpus = crate::index::scan::rekey(
+            &corpus,
+            snapshot,
+            now.iter().map(String::as_str),
+            &mut |_| fresh.next().expect("one per added id, in order"),
+        );
+        (now, corpus)
     }
 
     /// The calibration sample of every stored shape (`src/server/sample.rs`): the records
@@ -535,5 +575,55 @@ mod tests {
             assert_eq!(after.calibrated_on, 6, "{cap:?}");
             assert_eq!(served_epoch(app), after.epoch, "{cap:?}");
         }
+    }
+
+    /// An install whose snapshot is older than the scan (shapes were added during the
+    /// recalibration) reads the added shapes' signatures before it takes the scan's write
+    /// lock: none while every search waits on it. It installs what an install from a fresh
+    /// snapshot would.
+    #[test]
+    fn an_install_reads_the_shapes_added_since_its_snapshot_outside_the_write_lock() {
+        use std::sync::atomic::AtomicUsize;
+        let n = OnFaulty::start(|_| {});
+        let (app, rt, faulty) = (&n.app, &n.rt, &n.faulty);
+        for (i, m) in meshes()[3..].iter().enumerate() {
+            ingest(app, rt, m, &format!("t{i}"));
+            wait_idle(app);
+        }
+        let (cal, on, ids, rows) = {
+            let s = app.scan.read().unwrap();
+            let rows: Vec<Encoded> = (0..s.len()).map(|at| s.corpus().encoded(at)).collect();
+            (
+                s.calibration().unwrap().clone(),
+                s.calibrated_on(),
+                s.ids(),
+                rows,
+            )
+        };
+        assert_eq!(ids.len(), 6);
+        // The encoding, under the held calibration, of a snapshot of every other shape.
+        let snapshot: Vec<String> = ids.iter().step_by(2).cloned().collect();
+        let corpus = Corpus::build(Layout::of(&cal), &app.reencoded(&snapshot, &cal).unwrap());
+
+        let (reads, locked) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicUsize::new(0)));
+        let (scan, r, l) = (app.scan.clone(), reads.clone(), locked.clone());
+        *faulty.on_signature_read.lock().unwrap() = Some(Box::new(move || {
+            r.fetch_add(1, Ordering::SeqCst);
+            // The only writer here is the install itself.
+            if scan.try_read().is_err() {
+                l.fetch_add(1, Ordering::SeqCst);
+            }
+        }));
+        assert!(app.install_built(cal, on, &snapshot, corpus));
+        *faulty.on_signature_read.lock().unwrap() = None;
+        assert_eq!(reads.load(Ordering::SeqCst), 3, "the 3 shapes added since");
+        assert_eq!(
+            locked.load(Ordering::SeqCst),
+            0,
+            "signatures read under the scan's write lock"
+        );
+        let s = app.scan.read().unwrap();
+        assert_eq!(s.ids(), ids);
+        assert!((0..s.len()).map(|at| s.corpus().encoded(at)).eq(rows));
     }
 }

@@ -8,7 +8,7 @@ use super::{
 use crate::{Error, Result};
 use async_trait::async_trait;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// The wrapped store and the switches.
 pub(crate) struct Faulty {
@@ -19,6 +19,8 @@ pub(crate) struct Faulty {
     pub commits_tried: Arc<AtomicUsize>,
     /// Reads of a shape's signature (`signature`) fail.
     pub fail_signature_reads: AtomicBool,
+    /// Called on every read of a shape's signature (`signature`), before it.
+    pub on_signature_read: Mutex<Option<Box<dyn Fn() + Send + Sync>>>,
     /// Reads of a page of signatures (`scan_signatures`) fail.
     pub fail_scans: AtomicBool,
     /// Pages of `scan_signatures` hold at most this many (0: no cap): short pages before the
@@ -34,6 +36,7 @@ impl Faulty {
             commits_tried: Arc::new(AtomicUsize::new(0)),
             fail_signature_reads: AtomicBool::new(false),
             fail_scans: AtomicBool::new(false),
+            on_signature_read: Mutex::new(None),
             page_cap: AtomicUsize::new(0),
         }
     }
@@ -103,6 +106,9 @@ impl ShapeStore for Faulty {
         self.inner.list(after, tag, limit).await
     }
     async fn signature(&self, id: &str) -> Result<Option<Vec<u8>>> {
+        if let Some(f) = &*self.on_signature_read.lock().unwrap() {
+            f();
+        }
         if self.fail_signature_reads.load(Ordering::SeqCst) {
             return Err(Faulty::injected("signature read"));
         }
