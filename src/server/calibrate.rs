@@ -626,4 +626,66 @@ mod tests {
         assert_eq!(s.ids(), ids);
         assert!((0..s.len()).map(|at| s.corpus().encoded(at)).eq(rows));
     }
+
+    /// A stored calibration newer than the node's is installed once however many callers ask
+    /// at the same time (searches that met a shard at that epoch, the change feed, the
+    /// reconciliation): the others find it installed. A caller with a deadline stops waiting
+    /// at it while the install goes on.
+    #[test]
+    fn a_newer_stored_calibration_is_installed_once_and_waited_for_until_the_deadline() {
+        use std::sync::atomic::AtomicUsize;
+        use std::time::{Duration, Instant};
+        let n = OnFaulty::start(|_| {});
+        let (app, rt, faulty) = (&n.app, &n.rt, &n.faulty);
+        let held = app.scan.read().unwrap().len();
+        // The node's calibration committed again as the next epoch.
+        let commit_next = || {
+            let lock = rt.block_on(n.store.lock_calibration()).unwrap();
+            let next = lock.next_epoch();
+            let mut cal = (**app.scan.read().unwrap().calibration().unwrap()).clone();
+            cal.epoch = next;
+            let json = serde_json::to_vec(&cal).unwrap();
+            rt.block_on(lock.commit_as(next, held as u64, json))
+                .unwrap();
+            next
+        };
+        let reads = Arc::new(AtomicUsize::new(0));
+        let pause = Arc::new(AtomicUsize::new(0)); // ms slept per signature read
+        let (r, p) = (reads.clone(), pause.clone());
+        *faulty.on_signature_read.lock().unwrap() = Some(Box::new(move || {
+            r.fetch_add(1, Ordering::SeqCst);
+            std::thread::sleep(Duration::from_millis(p.load(Ordering::SeqCst) as u64));
+        }));
+
+        let epoch = commit_next();
+        rt.block_on(async {
+            let asks: Vec<_> = (0..4).map(|_| app.adopt_stored_calibration()).collect();
+            for r in futures_util::future::join_all(asks).await {
+                r.unwrap();
+            }
+        });
+        assert_eq!(app.epoch(), epoch);
+        assert_eq!(
+            reads.load(Ordering::SeqCst),
+            held,
+            "each held shape read once: one install for 4 callers"
+        );
+
+        // Every read now takes 300 ms: the install takes at least 600 ms.
+        pause.store(300, Ordering::SeqCst);
+        let epoch = commit_next();
+        let t = Instant::now();
+        rt.block_on(app.adopt_until(Instant::now() + Duration::from_millis(50)))
+            .unwrap();
+        let waited = t.elapsed();
+        assert!(
+            waited < Duration::from_millis(400),
+            "waited {waited:?} past a 50 ms deadline"
+        );
+        while app.epoch() != epoch {
+            assert!(t.elapsed() < Duration::from_secs(30), "the install went on");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        *faulty.on_signature_read.lock().unwrap() = None;
+    }
 }

@@ -304,6 +304,13 @@ impl App {
         };
         let app = self.clone();
         tokio::task::spawn_blocking(move || {
+            // One install at a time: concurrent callers (searches that met a shard at a newer
+            // epoch, the change feed, the reconciliation) would each re-encode every held
+            // shape. A caller that waited finds the epoch installed.
+            let _one = app.adopting.lock().unwrap_or_else(|p| p.into_inner());
+            if stored.epoch <= app.epoch() {
+                return;
+            }
             app.admission.on_heavy_pool(|| {
                 app.install(Arc::new(cal), stored.calibrated_on as usize);
             })
@@ -311,6 +318,15 @@ impl App {
         .await
         .map_err(ApiError::internal)?;
         Ok(())
+    }
+
+    /// [`App::adopt_stored_calibration`] waited for until `until` at the latest (a request's
+    /// deadline): the install goes on in the background when the deadline comes first.
+    pub(super) async fn adopt_until(self: &Arc<Self>, until: Instant) -> Result<(), ApiError> {
+        match tokio::time::timeout_at(until.into(), self.adopt_stored_calibration()).await {
+            Ok(r) => r,
+            Err(_) => Ok(()),
+        }
     }
 
     /// Brings the scan to the store's ids and epoch.

@@ -79,6 +79,7 @@ impl App {
             limits,
             ready: AtomicBool::new(false),
             recalibrating: AtomicBool::new(false),
+            adopting: std::sync::Mutex::new(()),
             metrics: m::handle(),
             cluster: None,
         };

@@ -397,7 +397,8 @@ impl App {
                 });
             }
             if other > cal.epoch {
-                self.adopt_stored_calibration().await?;
+                // Within the request's deadline: installing re-encodes the node's shard.
+                self.adopt_until(until).await?;
             }
             tokio::time::sleep(RETRY_PAUSE).await;
         };

@@ -40,6 +40,9 @@ pub struct App {
     /// False until loaded, and again once shutting down.
     pub ready: AtomicBool,
     pub(super) recalibrating: AtomicBool,
+    /// Held while a stored calibration is installed ([`App::adopt_stored_calibration`]): one
+    /// install at a time, the others then find it done.
+    pub(super) adopting: std::sync::Mutex<()>,
     /// Metrics handle.
     pub metrics: Option<metrics_exporter_prometheus::PrometheusHandle>,
     /// The work queue and change feed, when this node is one of a cluster.
