@@ -941,21 +941,24 @@ struct FarHost {
 impl FarHost {
     /// Err says why not (not root, no `ip`, network namespaces not allowed).
     fn new() -> Result<FarHost, String> {
-        let pid = std::process::id();
-        // A /30 of 198.18.0.0/15 (the benchmarking range) chosen by the process id.
-        let base = (pid % 16384) * 4;
+        // Names and a /30 of 198.18.0.0/15 (the benchmarking range) drawn at random: another
+        // run's (pids repeat across containers) makes `ip` fail rather than be taken over.
+        let tag = {
+            use std::hash::{BuildHasher, Hasher};
+            let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+            h.write_u32(std::process::id());
+            (h.finish() % 10_000_000) as u32
+        };
+        let base = (tag % 16384) * 4;
         let addr = |host: u32| format!("198.18.{}.{}", base / 256, base % 256 + host);
         let h = FarHost {
-            ns: format!("ssk{pid}"),
+            ns: format!("ssk{tag}"),
             here: addr(1),
             far: addr(2),
-            here_if: format!("ssk{pid}h"),
-            far_if: format!("ssk{pid}f"),
+            here_if: format!("ssk{tag}h"),
+            far_if: format!("ssk{tag}f"),
         };
         let here_if = h.here_if.clone();
-        // A namespace left by a killed run of the same process id.
-        let _ = Command::new("ip").args(["netns", "del", &h.ns]).output();
-        let _ = Command::new("ip").args(["link", "del", &here_if]).output();
         let here_cidr = format!("{}/30", h.here);
         let far_cidr = format!("{}/30", h.far);
         let steps: [&[&str]; 8] = [
@@ -1011,6 +1014,8 @@ impl FarHost {
                 "--nocapture",
             ])
             .env("SHAPESEEK_LOCK_HOLDER_URL", url)
+            // Its end of the pipe closes with this process, however it ends: the holder exits.
+            .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
@@ -1063,7 +1068,8 @@ impl Drop for Far {
 /// Not a test: the process that `a_calibration_lock_held_from_a_vanished_host_is_freed` starts
 /// on its far host. With `SHAPESEEK_LOCK_HOLDER_URL` set, it prints `LOCKING`, takes the
 /// calibration lock of that database through the product's code (waiting while another holds
-/// it), prints `HOLDING` and holds it, idle, until killed. Without it, it does nothing.
+/// it), prints `HOLDING` and holds it, idle, until killed or its standard input ends (the
+/// test process is gone). Without it, it does nothing.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "a helper process of a_calibration_lock_held_from_a_vanished_host_is_freed"]
 async fn calibration_lock_holder() {
@@ -1075,6 +1081,10 @@ async fn calibration_lock_holder() {
     let store = PgStore::connect(&url, PoolOptions { max_size: 2 })
         .await
         .expect("connect from the far host");
+    std::thread::spawn(|| {
+        let _ = std::io::copy(&mut std::io::stdin(), &mut std::io::sink());
+        std::process::exit(0);
+    });
     println!("LOCKING");
     std::io::stdout().flush().unwrap();
     let lock = store.lock_calibration().await.expect("lock");

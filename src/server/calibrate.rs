@@ -35,6 +35,16 @@ use std::time::Instant;
 /// Records per page when the stored shapes are listed for the calibration sample.
 const LIST_PAGE: usize = 1000;
 
+/// What [`App::caught_up`] found.
+enum CaughtUp {
+    /// The scan holds a newer epoch: nothing to install.
+    Newer,
+    /// No shape added since the snapshot: its corpus as it was.
+    Same(Corpus),
+    /// The scan's ids of now and the corpus re-keyed to them.
+    Rekeyed(Vec<String>, Corpus),
+}
+
 impl App {
     /// True when the index size moved by more than the configured fraction since the last
     /// calibration.
@@ -236,12 +246,7 @@ impl App {
     fn reencoded(&self, ids: &[String], cal: &Calibration) -> crate::Result<Vec<Encoded>> {
         let layout = Layout::of(cal);
         ids.par_iter()
-            .map(|id| {
-                Ok(match self.read_signature(id)? {
-                    Some(s) => Encoded::from_signature(&s, cal, &layout),
-                    None => Encoded::absent(&layout),
-                })
-            })
+            .map(|id| self.encode_stored(id, cal, &layout))
             .collect()
     }
 
@@ -268,7 +273,8 @@ impl App {
     /// Installs `cal` with `corpus` (its encoding of `snapshot`), unless the scan holds a
     /// newer epoch by now: installs run concurrently (the replica's reconciliation, a
     /// coordinator that saw a newer epoch, this node's own recalibration), and one that began
-    /// first may end last. False when skipped.
+    /// first may end last. False when skipped, or when the store could not be read for the
+    /// shapes added since the snapshot (logged; a later change or reconciliation tries again).
     fn install_built(
         &self,
         cal: Arc<Calibration>,
@@ -276,59 +282,84 @@ impl App {
         snapshot: &[String],
         corpus: Corpus,
     ) -> bool {
-        let (snapshot, corpus) = self.caught_up(&cal, snapshot, corpus);
-        let snapshot = &snapshot[..];
-        let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
         let epoch = self.engine.calibration_epoch(&cal);
-        if let Some(held) = scan.calibration().map(|c| self.engine.calibration_epoch(c)) {
-            if held > epoch {
-                tracing::info!(
-                    epoch,
-                    held,
-                    "a newer calibration was installed meanwhile; skipped"
-                );
+        let (now, corpus) = match self.caught_up(&cal, snapshot, corpus) {
+            Ok(CaughtUp::Newer) => return false,
+            Ok(CaughtUp::Same(corpus)) => (None, corpus),
+            Ok(CaughtUp::Rekeyed(now, corpus)) => (Some(now), corpus),
+            Err(e) => {
+                tracing::error!(error = %e, epoch, "could not read the store; calibration not installed");
                 return false;
             }
+        };
+        let snapshot = now.as_deref().unwrap_or(snapshot);
+        let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
+        if self.holds_newer(&scan, epoch) {
+            return false;
         }
-        scan.install_calibration(cal, on, snapshot, corpus, &mut |id, cal, layout| match self
-            .stored_signature(id)
-        {
-            Some(s) => Encoded::from_signature(&s, cal, layout),
-            None => Encoded::absent(layout),
+        scan.install_calibration(cal, on, snapshot, corpus, &mut |id, cal, layout| {
+            self.encode_stored(id, cal, layout).unwrap_or_else(|e| {
+                tracing::error!(id, error = %e, "could not read a stored signature");
+                Encoded::absent(layout)
+            })
         });
         drop(scan);
         self.update_gauges();
         true
     }
 
-    /// `corpus` (the encoding of `snapshot` under `cal`) brought up to the scan's ids of now:
-    /// the shapes added since the snapshot (the inserts during a recalibration) are read from
-    /// the store and encoded here, before [`App::install_built`] takes the scan's write lock,
-    /// under which every search waits. Under it only the rows are copied, and only the shapes
-    /// added in between are read (one store round trip each on PostgreSQL).
+    /// True (logged) when `scan` holds a calibration newer than `epoch`.
+    fn holds_newer(&self, scan: &crate::index::ScanIndex, epoch: u64) -> bool {
+        let held = scan.calibration().map(|c| self.engine.calibration_epoch(c));
+        let newer = held.is_some_and(|h| h > epoch);
+        if newer {
+            tracing::info!(
+                epoch,
+                held,
+                "a newer calibration was installed meanwhile; skipped"
+            );
+        }
+        newer
+    }
+
+    /// `corpus` (the encoding of `snapshot` under `cal`) brought up to the scan's ids of now,
+    /// with those ids ([`CaughtUp`]): the shapes
+    /// added since (the inserts during a recalibration) are read from the store and encoded
+    /// here, before [`App::install_built`] takes the scan's write lock, under which every
+    /// search waits. Under it only the rows are copied, and only the shapes added in between
+    /// are read (one store round trip each on PostgreSQL). An error when the store could not be read (a shape made absent by
+    /// a passing fault would stay unsearchable until the next calibration).
     fn caught_up(
         &self,
         cal: &Calibration,
         snapshot: &[String],
         corpus: Corpus,
-    ) -> (Vec<String>, Corpus) {
-        let now = self.scan.read().unwrap_or_else(|p| p.into_inner()).ids();
+    ) -> crate::Result<CaughtUp> {
+        let now = {
+            let scan = self.scan.read().unwrap_or_else(|p| p.into_inner());
+            if self.holds_newer(&scan, self.engine.calibration_epoch(cal)) {
+                return Ok(CaughtUp::Newer);
+            }
+            let added = (0..scan.len()).any(|i| {
+                snapshot
+                    .binary_search_by(|s| s.as_str().cmp(scan.id(i)))
+                    .is_err()
+            });
+            if !added {
+                // Deletions only: leaving rows out under the lock reads nothing.
+                return Ok(CaughtUp::Same(corpus));
+            }
+            scan.ids()
+        };
+        let layout = corpus.layout().clone();
         let added: Vec<&String> = now
             .iter()
             .filter(|id| snapshot.binary_search(id).is_err())
             .collect();
-        if added.is_empty() {
-            // Deletions only: leaving rows out under the lock reads nothing.
-            return (snapshot.to_vec(), corpus);
-        }
-        let layout = corpus.layout().clone();
         let fresh: Vec<Encoded> = added
             .par_iter()
-            .map(|id| match self.stored_signature(id) {
-                Some(s) => Encoded::from_signature(&s, cal, &layout),
-                None => Encoded::absent(&layout),
-            })
-            .collect();
+            .map(|id| self.encode_stored(id, cal, &layout))
+            .collect::<crate::Result<_>>()?;
         let mut fresh = fresh.into_iter();
         let corpus = crate::index::scan::rekey(
             &corpus,
@@ -336,7 +367,21 @@ impl App {
             now.iter().map(String::as_str),
             &mut |_| fresh.next().expect("one per added id, in order"),
         );
-        (now, corpus)
+        Ok(CaughtUp::Rekeyed(now, corpus))
+    }
+
+    /// `id`'s stored signature encoded under `cal` (absent when the shape is gone or its
+    /// signature does not decode); an error when the store could not be read.
+    fn encode_stored(
+        &self,
+        id: &str,
+        cal: &Calibration,
+        layout: &Layout,
+    ) -> crate::Result<Encoded> {
+        Ok(match self.read_signature(id)? {
+            Some(s) => Encoded::from_signature(&s, cal, layout),
+            None => Encoded::absent(layout),
+        })
     }
 
     /// The calibration sample of every stored shape (`src/server/sample.rs`): the records
@@ -392,14 +437,6 @@ impl App {
                 }
             },
             None => None,
-        })
-    }
-
-    /// [`App::read_signature`] with a store error logged as `None`.
-    pub(super) fn stored_signature(&self, id: &str) -> Option<Signature> {
-        self.read_signature(id).unwrap_or_else(|e| {
-            tracing::error!(id, error = %e, "could not read a stored signature");
-            None
         })
     }
 }
@@ -517,7 +554,7 @@ mod tests {
             .unwrap()
             .ids()
             .iter()
-            .map(|id| app.stored_signature(id).unwrap())
+            .map(|id| app.read_signature(id).unwrap().unwrap())
             .collect();
         let refs: Vec<&Signature> = sigs.iter().collect();
         let older = Arc::new(app.engine.calibrate(&refs, held - 1));
@@ -605,9 +642,20 @@ mod tests {
         let snapshot: Vec<String> = ids.iter().step_by(2).cloned().collect();
         let corpus = Corpus::build(Layout::of(&cal), &app.reencoded(&snapshot, &cal).unwrap());
 
+        let rows_now = || {
+            let s = app.scan.read().unwrap();
+            (0..s.len()).map(|at| s.corpus().encoded(at)).collect::<Vec<_>>()
+        };
+        // A store that cannot be read: nothing installed (an added shape made absent would stay
+        // unsearchable until the next calibration).
+        faulty.fail_signature_reads.store(true, Ordering::SeqCst);
+        assert!(!app.install_built(cal.clone(), on, &snapshot, corpus.clone()));
+        faulty.fail_signature_reads.store(false, Ordering::SeqCst);
+        assert!(rows_now() == rows, "the rows as they were");
+
         let (reads, locked) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicUsize::new(0)));
         let (scan, r, l) = (app.scan.clone(), reads.clone(), locked.clone());
-        *faulty.on_signature_read.lock().unwrap() = Some(Box::new(move || {
+        *faulty.on_signature_read.lock().unwrap() = Some(Arc::new(move || {
             r.fetch_add(1, Ordering::SeqCst);
             // The only writer here is the install itself.
             if scan.try_read().is_err() {
@@ -622,9 +670,8 @@ mod tests {
             0,
             "signatures read under the scan's write lock"
         );
-        let s = app.scan.read().unwrap();
-        assert_eq!(s.ids(), ids);
-        assert!((0..s.len()).map(|at| s.corpus().encoded(at)).eq(rows));
+        assert_eq!(app.scan.read().unwrap().ids(), ids);
+        assert!(rows_now() == rows);
     }
 
     /// A stored calibration newer than the node's is installed once however many callers ask
@@ -652,7 +699,7 @@ mod tests {
         let reads = Arc::new(AtomicUsize::new(0));
         let pause = Arc::new(AtomicUsize::new(0)); // ms slept per signature read
         let (r, p) = (reads.clone(), pause.clone());
-        *faulty.on_signature_read.lock().unwrap() = Some(Box::new(move || {
+        *faulty.on_signature_read.lock().unwrap() = Some(Arc::new(move || {
             r.fetch_add(1, Ordering::SeqCst);
             std::thread::sleep(Duration::from_millis(p.load(Ordering::SeqCst) as u64));
         }));
@@ -671,15 +718,15 @@ mod tests {
             "each held shape read once: one install for 4 callers"
         );
 
-        // Every read now takes 300 ms: the install takes at least 600 ms.
-        pause.store(300, Ordering::SeqCst);
+        // Every read now takes a second: the install takes at least two (3 reads, 2 threads).
+        pause.store(1000, Ordering::SeqCst);
         let epoch = commit_next();
         let t = Instant::now();
         rt.block_on(app.adopt_until(Instant::now() + Duration::from_millis(50)))
             .unwrap();
         let waited = t.elapsed();
         assert!(
-            waited < Duration::from_millis(400),
+            waited < Duration::from_secs(1),
             "waited {waited:?} past a 50 ms deadline"
         );
         while app.epoch() != epoch {

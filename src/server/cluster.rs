@@ -302,15 +302,17 @@ impl App {
             );
             return Ok(());
         };
+        // One install at a time: concurrent callers (searches that met a shard at a newer
+        // epoch, the change feed, the reconciliation) would each re-encode every held shape. A
+        // caller that waited finds the epoch installed; one that stops waiting (a deadline)
+        // holds no thread meanwhile. The install owns the guard to its end.
+        let one = self.adopting.clone().lock_owned().await;
+        if stored.epoch <= self.epoch() {
+            return Ok(());
+        }
         let app = self.clone();
         tokio::task::spawn_blocking(move || {
-            // One install at a time: concurrent callers (searches that met a shard at a newer
-            // epoch, the change feed, the reconciliation) would each re-encode every held
-            // shape. A caller that waited finds the epoch installed.
-            let _one = app.adopting.lock().unwrap_or_else(|p| p.into_inner());
-            if stored.epoch <= app.epoch() {
-                return;
-            }
+            let _one = one;
             app.admission.on_heavy_pool(|| {
                 app.install(Arc::new(cal), stored.calibrated_on as usize);
             })

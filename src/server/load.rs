@@ -79,7 +79,7 @@ impl App {
             limits,
             ready: AtomicBool::new(false),
             recalibrating: AtomicBool::new(false),
-            adopting: std::sync::Mutex::new(()),
+            adopting: Arc::new(tokio::sync::Mutex::new(())),
             metrics: m::handle(),
             cluster: None,
         };

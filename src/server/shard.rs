@@ -382,7 +382,13 @@ impl App {
             let Some(other) = other else {
                 break (cal, query, answers);
             };
-            if Instant::now() + RETRY_PAUSE >= until {
+            let late = || Instant::now() + RETRY_PAUSE >= until;
+            if other > cal.epoch && !late() {
+                // Within the request's deadline: installing re-encodes the node's shard (it
+                // goes on in the background past it).
+                self.adopt_until(until).await?;
+            }
+            if late() {
                 return Err(ApiError {
                     retry_after: Some(retry_after),
                     ..ApiError::new(
@@ -395,10 +401,6 @@ impl App {
                         ),
                     )
                 });
-            }
-            if other > cal.epoch {
-                // Within the request's deadline: installing re-encodes the node's shard.
-                self.adopt_until(until).await?;
             }
             tokio::time::sleep(RETRY_PAUSE).await;
         };

@@ -42,7 +42,7 @@ pub struct App {
     pub(super) recalibrating: AtomicBool,
     /// Held while a stored calibration is installed ([`App::adopt_stored_calibration`]): one
     /// install at a time, the others then find it done.
-    pub(super) adopting: std::sync::Mutex<()>,
+    pub(super) adopting: Arc<tokio::sync::Mutex<()>>,
     /// Metrics handle.
     pub metrics: Option<metrics_exporter_prometheus::PrometheusHandle>,
     /// The work queue and change feed, when this node is one of a cluster.

@@ -20,7 +20,7 @@ pub(crate) struct Faulty {
     /// Reads of a shape's signature (`signature`) fail.
     pub fail_signature_reads: AtomicBool,
     /// Called on every read of a shape's signature (`signature`), before it.
-    pub on_signature_read: Mutex<Option<Box<dyn Fn() + Send + Sync>>>,
+    pub on_signature_read: Mutex<Option<Arc<dyn Fn() + Send + Sync>>>,
     /// Reads of a page of signatures (`scan_signatures`) fail.
     pub fail_scans: AtomicBool,
     /// Pages of `scan_signatures` hold at most this many (0: no cap): short pages before the
@@ -106,7 +106,9 @@ impl ShapeStore for Faulty {
         self.inner.list(after, tag, limit).await
     }
     async fn signature(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        if let Some(f) = &*self.on_signature_read.lock().unwrap() {
+        // Called outside the switch's lock: reads in parallel stay parallel.
+        let hook = self.on_signature_read.lock().unwrap().clone();
+        if let Some(f) = hook {
             f();
         }
         if self.fail_signature_reads.load(Ordering::SeqCst) {

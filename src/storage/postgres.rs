@@ -171,7 +171,9 @@ impl PgStore {
             client: Some(client),
         };
         let c = holder.client.as_ref().expect("just set");
-        c.batch_execute(LOCK_BEGIN).await.map_err(pg("BEGIN"))?;
+        c.batch_execute(LOCK_BEGIN)
+            .await
+            .map_err(pg("starting the calibration lock's transaction"))?;
         let sql = if skip {
             "SELECT epoch, calibrated_on, body::text FROM calibration WHERE singleton \
              FOR UPDATE SKIP LOCKED"
@@ -222,7 +224,10 @@ fn calibration_from(
 /// after 10 s idle, every 5 s, and drops the connection after 3 unanswered probes or 30 s of
 /// unacknowledged data: a vanished holder's lock is free after about 25–30 s, and a live
 /// holder, however long it computes, answers the probes from its kernel. The settings act on
-/// TCP connections only (a Unix socket's peer is on the server's own host).
+/// TCP connections only (a Unix socket's peer is on the server's own host), and need
+/// PostgreSQL 12 or later (`tcp_user_timeout`). Behind a pooler (PgBouncer) they act on the
+/// pooler's connection to the server, not on the node's. A live holder cut off for longer than
+/// this loses the lock too; its commit then fails, and nothing is installed from it.
 /// `tests/postgres.rs` `a_calibration_lock_held_from_a_vanished_host_is_freed` cuts a holder
 /// off in a network namespace and measures it.
 const LOCK_BEGIN: &str = "BEGIN; \
