@@ -536,11 +536,26 @@ async fn scan_and_replace_signature(store: Arc<dyn ShapeStore>) {
         s.signature(&want[1].0.id).await.unwrap(),
         Some(want[1].1.clone())
     );
-    assert!(s.delete(&want[4].0.id).await.unwrap());
+    // A record naming another content hash than the stored shape's: nothing written.
+    let (mut other, _) = want[3].clone();
+    other.sha256 = want[0].0.sha256.clone();
+    other.spec_key = "spec-c".into();
     assert!(!s
-        .replace_signature(&want[4].0, &[1, 2, 3], None)
+        .replace_signature(&other, &[4, 5, 6], Some(&[7, 8]))
         .await
         .unwrap());
+    assert_eq!(s.get(&other.id).await.unwrap(), Some(want[3].0.clone()));
+    assert_eq!(
+        s.signature(&other.id).await.unwrap(),
+        Some(want[3].1.clone())
+    );
+    assert_ne!(s.payload(&other.id).await.unwrap(), Some(vec![7, 8]));
+    assert!(s.delete(&want[4].0.id).await.unwrap());
+    assert!(!s
+        .replace_signature(&want[4].0, &[1, 2, 3], Some(&[9]))
+        .await
+        .unwrap());
+    assert_eq!(s.payload(&want[4].0.id).await.unwrap(), None);
     assert_eq!(s.get(&want[4].0.id).await.unwrap(), None);
     assert_eq!(s.signature(&want[4].0.id).await.unwrap(), None);
 }

@@ -281,7 +281,8 @@ fn read_chunked(
     }
 }
 
-/// Writes the chunked value of `id` in a transaction of its own.
+/// Writes the chunked value of `id` in a transaction of its own (the chunking's tests).
+#[cfg(test)]
 fn put_chunked_alone(tree: &sled::Tree, id: &[u8], value: &[u8]) -> Result<()> {
     let res: std::result::Result<(), TransactionError<()>> =
         tree.transaction(|t| put_chunked(t, id, value));
@@ -594,13 +595,6 @@ impl Store {
         get_chunked(&self.payloads, id.as_bytes(), "payload")
     }
 
-    /// Writes (or replaces) the re-ranking payload of a stored shape and flushes.
-    pub fn set_payload(&self, id: &str, payload: &[u8]) -> Result<()> {
-        put_chunked_alone(&self.payloads, id.as_bytes(), payload)?;
-        self.db.flush().map_err(storage_err)?;
-        Ok(())
-    }
-
     /// The record of a shape.
     pub fn get(&self, id: &str) -> Result<Option<ShapeRecord>> {
         match self.shapes.get(id.as_bytes()).map_err(storage_err)? {
@@ -616,21 +610,45 @@ impl Store {
         get_chunked(&self.signatures, id.as_bytes(), "signature")
     }
 
-    /// Replaces the stored signature (and the record's spec key) of an existing shape.
-    pub fn replace_signature(&self, record: &ShapeRecord, signature: &[u8]) -> Result<()> {
+    /// Replaces the record (its spec key), signature and, when given, payload of an existing
+    /// shape, in one transaction, and flushes. False (nothing written) when the shape is absent
+    /// or stored with another content hash than `record.sha256`: a replacement never outlives a
+    /// concurrent delete (no payload left behind) nor rewrites another upload's shape.
+    pub fn replace_signature(
+        &self,
+        record: &ShapeRecord,
+        signature: &[u8],
+        payload: Option<&[u8]>,
+    ) -> Result<bool> {
         let rec = serde_json::to_vec(record).map_err(storage_err)?;
         let id = record.id.as_bytes();
-        let res: std::result::Result<(), TransactionError<()>> = (&self.shapes, &self.signatures)
-            .transaction(|(shapes, sigs)| {
-                if shapes.get(id)?.is_some() {
+        let res: std::result::Result<bool, TransactionError<()>> =
+            (&self.shapes, &self.signatures, &self.payloads).transaction(
+                |(shapes, sigs, payloads)| {
+                    let same = match shapes.get(id)? {
+                        Some(v) => serde_json::from_slice::<ShapeRecord>(&v)
+                            .map_err(|_| ConflictableTransactionError::Abort(()))?
+                            .sha256
+                            .eq_ignore_ascii_case(&record.sha256),
+                        None => false,
+                    };
+                    if !same {
+                        return Ok(false);
+                    }
                     shapes.insert(id, rec.as_slice())?;
                     put_chunked(sigs, id, signature)?;
-                }
-                Ok::<_, ConflictableTransactionError<()>>(())
-            });
-        res.map_err(|e| storage_err(format!("{e:?}")))?;
-        self.db.flush().map_err(storage_err)?;
-        Ok(())
+                    if let Some(p) = payload {
+                        put_chunked(payloads, id, p)?;
+                    }
+                    Ok::<_, ConflictableTransactionError<()>>(true)
+                },
+            );
+        let replaced = res
+            .map_err(|e| storage_err(format!("replacing the signature of {}: {e:?}", record.id)))?;
+        if replaced {
+            self.db.flush().map_err(storage_err)?;
+        }
+        Ok(replaced)
     }
 
     /// The original upload of a shape.

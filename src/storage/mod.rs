@@ -188,7 +188,8 @@ pub trait ShapeStore: Send + Sync {
     async fn payload(&self, id: &str) -> Result<Option<Vec<u8>>>;
 
     /// Replaces the record (its spec key), signature and, when given, payload of an existing
-    /// shape whose signature was computed with another spec. False when the shape is absent.
+    /// shape whose signature was computed with another spec, together. False (nothing written)
+    /// when the shape is absent or stored with another content hash than `record.sha256`.
     async fn replace_signature(
         &self,
         record: &ShapeRecord,

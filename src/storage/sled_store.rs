@@ -260,17 +260,8 @@ impl ShapeStore for SledStorage {
             signature.to_vec(),
             payload.map(<[u8]>::to_vec),
         );
-        self.run(move |s| {
-            if s.get(&rec.id)?.is_none() {
-                return Ok(false);
-            }
-            if let Some(p) = &pay {
-                s.set_payload(&rec.id, p)?;
-            }
-            s.replace_signature(&rec, &sig)?;
-            Ok(s.get(&rec.id)?.is_some())
-        })
-        .await
+        self.run(move |s| s.replace_signature(&rec, &sig, pay.as_deref()))
+            .await
     }
 
     async fn scan_signatures(
