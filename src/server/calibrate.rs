@@ -644,7 +644,9 @@ mod tests {
 
         let rows_now = || {
             let s = app.scan.read().unwrap();
-            (0..s.len()).map(|at| s.corpus().encoded(at)).collect::<Vec<_>>()
+            (0..s.len())
+                .map(|at| s.corpus().encoded(at))
+                .collect::<Vec<_>>()
         };
         // A store that cannot be read: nothing installed (an added shape made absent would stay
         // unsearchable until the next calibration).

@@ -11,9 +11,11 @@
 //!   bytes finds it.
 //! * Replica: every change announced on the feed is applied from the store (insert: record
 //!   and signature read back; delete; calibration: the stored epoch installed). A node that
-//!   starts builds its scan from the store ([`App::load`]); every `reconcile` interval it
-//!   compares its ids and epoch with the store's and repairs what a lost message left out, so
-//!   a node that missed messages converges without them.
+//!   starts builds its scan from the store ([`App::load`]), subscribes to the feed and
+//!   reconciles once before it says it is ready (what changed while it loaded is in its scan
+//!   by then); every `reconcile` interval it compares its ids and epoch with the store's and
+//!   repairs what a lost message left out, so a node that missed messages converges without
+//!   them.
 //! * Calibration: computed by one node under the store's lock; a node that finds, under the
 //!   lock, a stored epoch newer than its own that still fits the corpus installs it instead of
 //!   computing (`src/server/calibrate.rs`), so all nodes rank with the same calibration at the
@@ -370,23 +372,27 @@ impl App {
         Ok(())
     }
 
-    /// Follows the change feed and reconciles every `every` (and once at once).
-    pub(super) fn spawn_replica(self: &Arc<Self>, every: Duration) {
+    /// Follows the change feed and reconciles every `every`. It subscribes first and
+    /// reconciles once before it returns, so that a change made while the node loaded (before
+    /// it listened) is in the scan before the node says it is ready (`router::start_with`).
+    pub(super) async fn start_replica(self: &Arc<Self>, every: Duration) {
         let Some(cl) = self.cluster() else {
             return;
         };
-        let bus = cl.bus.clone();
+        let mut sub = match cl.bus.changes().await {
+            Ok(s) => Some(s),
+            Err(e) => {
+                tracing::error!(error = %e, "no change feed; reconciling only");
+                None
+            }
+        };
+        if let Err(e) = self.reconcile().await {
+            tracing::warn!(error = %e.detail, "the first reconciliation failed; tried again every interval");
+        }
         let app = self.clone();
         tokio::spawn(async move {
             use futures_util::StreamExt;
-            let mut sub = match bus.changes().await {
-                Ok(s) => Some(s),
-                Err(e) => {
-                    tracing::error!(error = %e, "no change feed; reconciling only");
-                    None
-                }
-            };
-            let mut tick = tokio::time::interval(every);
+            let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + every, every);
             loop {
                 let msg = async {
                     match sub.as_mut() {

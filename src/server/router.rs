@@ -297,7 +297,8 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
     app.cluster = cluster;
     let app = Arc::new(app);
     if app.cluster.is_some() {
-        app.spawn_replica(Duration::from_secs_f64(app.cfg.reconcile_secs));
+        app.start_replica(Duration::from_secs_f64(app.cfg.reconcile_secs))
+            .await;
         app.start_shard_responder().await?;
     }
     let router = router(app.clone());
