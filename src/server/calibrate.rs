@@ -444,53 +444,9 @@ impl App {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::server::test_support::{ingest, meshes, node, runtime, served_epoch, wait_idle};
-    use crate::storage::faulty::Faulty;
-    use crate::storage::ShapeStore;
-
-    /// A node (configured by `tweak`) on a sled store behind [`Faulty`], holding the first
-    /// three of [`meshes`] under a committed calibration.
-    struct OnFaulty {
-        app: Arc<App>,
-        store: Arc<dyn ShapeStore>,
-        faulty: Arc<Faulty>,
-        rt: tokio::runtime::Runtime,
-        _dir: tempfile::TempDir,
-    }
-
-    impl OnFaulty {
-        fn start(tweak: impl FnOnce(&mut crate::server::ServerConfig)) -> OnFaulty {
-            let dir = tempfile::tempdir().unwrap();
-            let rt = runtime();
-            let faulty = Arc::new(Faulty::new(crate::server::test_support::sled_store(
-                dir.path(),
-                &rt,
-            )));
-            let store: Arc<dyn ShapeStore> = faulty.clone();
-            let app = Arc::new(crate::server::test_support::node_with(
-                dir.path(),
-                &store,
-                &rt,
-                tweak,
-            ));
-            for (i, m) in meshes()[..3].iter().enumerate() {
-                ingest(&app, &rt, m, &format!("s{i}"));
-                wait_idle(&app);
-            }
-            OnFaulty {
-                app,
-                store,
-                faulty,
-                rt,
-                _dir: dir,
-            }
-        }
-
-        /// The store's calibration.
-        fn stored(&self) -> crate::storage::StoredCalibration {
-            self.app.block(self.store.calibration()).unwrap().unwrap()
-        }
-    }
+    use crate::server::test_support::{
+        ingest, meshes, node, runtime, served_epoch, wait_idle, OnFaulty,
+    };
 
     /// A recalibration whose commit fails installs nothing: the node keeps ranking with the
     /// stored epoch (an epoch only it held would match no peer, and another node's later
@@ -498,7 +454,7 @@ mod tests {
     /// installs one.
     #[test]
     fn a_calibration_that_could_not_be_committed_is_not_installed() {
-        let n = OnFaulty::start(|_| {});
+        let n = OnFaulty::start(3, |_| {});
         let (app, rt, faulty) = (&n.app, &n.rt, &n.faulty);
         let meshes = meshes();
         let stored = || n.stored();
@@ -572,7 +528,7 @@ mod tests {
     #[test]
     fn a_recalibration_that_cannot_read_the_store_changes_nothing() {
         for cap in [None, Some(2)] {
-            let n = OnFaulty::start(|c| {
+            let n = OnFaulty::start(3, |c| {
                 if let Some(cap) = cap {
                     c.calibration_sample = cap;
                 }
@@ -621,7 +577,7 @@ mod tests {
     #[test]
     fn an_install_reads_the_shapes_added_since_its_snapshot_outside_the_write_lock() {
         use std::sync::atomic::AtomicUsize;
-        let n = OnFaulty::start(|_| {});
+        let n = OnFaulty::start(3, |_| {});
         let (app, rt, faulty) = (&n.app, &n.rt, &n.faulty);
         for (i, m) in meshes()[3..].iter().enumerate() {
             ingest(app, rt, m, &format!("t{i}"));
@@ -684,7 +640,7 @@ mod tests {
     fn a_newer_stored_calibration_is_installed_once_and_waited_for_until_the_deadline() {
         use std::sync::atomic::AtomicUsize;
         use std::time::{Duration, Instant};
-        let n = OnFaulty::start(|_| {});
+        let n = OnFaulty::start(3, |_| {});
         let (app, rt, faulty) = (&n.app, &n.rt, &n.faulty);
         let held = app.scan.read().unwrap().len();
         // The node's calibration committed again as the next epoch.

@@ -402,7 +402,7 @@ pub(super) fn moved(calibrated_on: usize, n: usize, fraction: f64) -> bool {
 mod tests {
     use super::*;
     use crate::server::test_support::{
-        ingest, meshes, node, node_with, runtime, sled_store, wait_idle,
+        ingest, meshes, node, node_with, runtime, sled_store, wait_idle, OnFaulty,
     };
 
     /// Every row of `scan` as (id, encoding), in scan order.
@@ -488,18 +488,15 @@ mod tests {
     /// both paths, instead of serving the shapes read before the failure as the whole corpus.
     #[test]
     fn a_store_that_fails_during_the_second_read_fails_the_load() {
-        use crate::storage::faulty::Faulty;
         use std::sync::atomic::Ordering;
-        let dir = tempfile::tempdir().unwrap();
-        let rt = runtime();
-        let faulty = Arc::new(Faulty::new(sled_store(dir.path(), &rt)));
-        let store: Arc<dyn ShapeStore> = faulty.clone();
-        let first = Arc::new(node(dir.path(), &store, &rt));
         let meshes = meshes();
-        for (i, m) in meshes.iter().enumerate() {
-            ingest(&first, &rt, m, &format!("s{i}"));
-        }
-        wait_idle(&first);
+        let OnFaulty {
+            app: first,
+            store,
+            faulty,
+            rt,
+            dir,
+        } = OnFaulty::start(meshes.len(), |_| {});
         drop(first);
         let reader = node_with(dir.path(), &store, &rt, |c| c.calibration_sample = 3);
         let (epoch, rows) = served(&reader);
@@ -545,17 +542,14 @@ mod tests {
     /// record whose signature is missing): the load reads on until an empty page.
     #[test]
     fn short_pages_do_not_end_the_load() {
-        use crate::storage::faulty::Faulty;
         use std::sync::atomic::Ordering;
-        let dir = tempfile::tempdir().unwrap();
-        let rt = runtime();
-        let faulty = Arc::new(Faulty::new(sled_store(dir.path(), &rt)));
-        let store: Arc<dyn ShapeStore> = faulty.clone();
-        let first = Arc::new(node(dir.path(), &store, &rt));
-        for (i, m) in meshes().iter().enumerate() {
-            ingest(&first, &rt, m, &format!("s{i}"));
-        }
-        wait_idle(&first);
+        let OnFaulty {
+            app: first,
+            store,
+            faulty,
+            rt,
+            dir,
+        } = OnFaulty::start(meshes().len(), |_| {});
         let whole = served(&first);
         drop(first);
         faulty.page_cap.store(2, Ordering::SeqCst);

@@ -8,6 +8,7 @@ use crate::mesh::generate::{bumpy_sphere, bumpy_torus, icosphere, torus};
 use crate::mesh::read::Format;
 use crate::mesh::write::write_mesh;
 use crate::mesh::Mesh;
+use crate::storage::faulty::Faulty;
 use crate::storage::ShapeStore;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -108,4 +109,41 @@ pub fn served_epoch(app: &App) -> u64 {
     let scan = app.scan.read().unwrap();
     scan.calibration()
         .map_or(0, |c| app.engine.calibration_epoch(c))
+}
+
+/// A node (configured by `tweak`) on a sled store behind [`Faulty`] (a store that fails on
+/// demand), holding the first `count` of [`meshes`] (named `s0`, `s1`, …) under a committed
+/// calibration.
+pub struct OnFaulty {
+    pub app: Arc<App>,
+    pub store: Arc<dyn ShapeStore>,
+    pub faulty: Arc<Faulty>,
+    pub rt: tokio::runtime::Runtime,
+    pub dir: tempfile::TempDir,
+}
+
+impl OnFaulty {
+    pub fn start(count: usize, tweak: impl FnOnce(&mut ServerConfig)) -> OnFaulty {
+        let dir = tempfile::tempdir().unwrap();
+        let rt = runtime();
+        let faulty = Arc::new(Faulty::new(sled_store(dir.path(), &rt)));
+        let store: Arc<dyn ShapeStore> = faulty.clone();
+        let app = Arc::new(node_with(dir.path(), &store, &rt, tweak));
+        for (i, m) in meshes()[..count].iter().enumerate() {
+            ingest(&app, &rt, m, &format!("s{i}"));
+            wait_idle(&app);
+        }
+        OnFaulty {
+            app,
+            store,
+            faulty,
+            rt,
+            dir,
+        }
+    }
+
+    /// The store's calibration.
+    pub fn stored(&self) -> crate::storage::StoredCalibration {
+        self.app.block(self.store.calibration()).unwrap().unwrap()
+    }
 }
