@@ -323,12 +323,12 @@ impl App {
     }
 
     /// `corpus` (the encoding of `snapshot` under `cal`) brought up to the scan's ids of now,
-    /// with those ids ([`CaughtUp`]): the shapes
-    /// added since (the inserts during a recalibration) are read from the store and encoded
-    /// here, before [`App::install_built`] takes the scan's write lock, under which every
-    /// search waits. Under it only the rows are copied, and only the shapes added in between
-    /// are read (one store round trip each on PostgreSQL). An error when the store could not be read (a shape made absent by
-    /// a passing fault would stay unsearchable until the next calibration).
+    /// with those ids ([`CaughtUp`]): the shapes added since (the inserts during a
+    /// recalibration) are read from the store and encoded here, before [`App::install_built`]
+    /// takes the scan's write lock, under which every search waits. Under it only the rows are
+    /// copied, and only the shapes added in between are read (one store round trip each on
+    /// PostgreSQL). An error when the store could not be read (a shape made absent by a
+    /// passing fault would stay unsearchable until the next calibration).
     fn caught_up(
         &self,
         cal: &Calibration,

@@ -217,9 +217,10 @@ fn calibration_from(
 
 /// Opens the calibration lock's transaction. The row lock lives as long as the session, and a
 /// session whose client's host went away without closing it (power lost, network cut) lives on
-/// until TCP gives up: with the system's defaults, two hours of idle before the first
-/// keepalive probe (the holder computing, or a waiter that got the lock after it vanished, its
-/// answer unacknowledged, about fifteen minutes of retransmissions). For this transaction only
+/// until TCP gives up. With the system's defaults that is two hours of idle before the first
+/// keepalive probe for a holder that vanished while it computed, and Linux's 15
+/// retransmissions (about a quarter of an hour) for a waiter that vanished and was then handed
+/// the lock, its answer never acknowledged. For this transaction only
 /// (`SET LOCAL`: the pooled connection gets its settings back at its end), the server probes
 /// after 10 s idle, every 5 s, and drops the connection after 3 unanswered probes or 30 s of
 /// unacknowledged data: a vanished holder's lock is free after about 25–30 s, and a live
