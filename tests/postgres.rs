@@ -1158,6 +1158,24 @@ fn a_calibration_lock_held_from_a_vanished_host_is_freed() {
         }
     }
     let _stop = Stop(&pg);
+    // A test process killed outright (the CI's watchdog) runs no Drop: a watchdog of its own
+    // stops the instance and removes the far host once the process is gone.
+    let script = format!(
+        "while kill -0 {pid} 2>/dev/null; do sleep 1; done; {stop} >/dev/null 2>&1; \
+         ip link del {here_if} 2>/dev/null; ip netns del {ns} 2>/dev/null; rm -rf '{dir}'",
+        pid = std::process::id(),
+        stop = pg.stop_shell(),
+        here_if = far.here_if,
+        ns = far.ns,
+        dir = dir.path().display()
+    );
+    Command::new("sh")
+        .args(["-c", &script])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("watchdog");
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
