@@ -51,19 +51,11 @@ fn start_private(bin: &Path) -> Result<PgServer, String> {
         .keep();
     let pg = PrivatePg::start(bin, &dir)?;
     // Stop the instance and remove its directory once this test process is gone.
-    let script = format!(
-        "while kill -0 {pid} 2>/dev/null; do sleep 1; done; {stop} >/dev/null 2>&1; rm -rf '{dir}'",
-        pid = std::process::id(),
+    engines::after_exit(&format!(
+        "{stop} >/dev/null 2>&1; rm -rf '{dir}'",
         stop = pg.stop_shell(),
         dir = dir.display()
-    );
-    Command::new("sh")
-        .args(["-c", &script])
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .map_err(|e| format!("watchdog: {e}"))?;
+    ))?;
     Ok(PgServer {
         base: pg.base_url(),
         origin: format!("private instance on port {} in {}", pg.port, dir.display()),
@@ -1160,22 +1152,15 @@ fn a_calibration_lock_held_from_a_vanished_host_is_freed() {
     let _stop = Stop(&pg);
     // A test process killed outright (the CI's watchdog) runs no Drop: a watchdog of its own
     // stops the instance and removes the far host once the process is gone.
-    let script = format!(
-        "while kill -0 {pid} 2>/dev/null; do sleep 1; done; {stop} >/dev/null 2>&1; \
-         ip link del {here_if} 2>/dev/null; ip netns del {ns} 2>/dev/null; rm -rf '{dir}'",
-        pid = std::process::id(),
+    engines::after_exit(&format!(
+        "{stop} >/dev/null 2>&1; ip link del {here_if} 2>/dev/null; \
+         ip netns del {ns} 2>/dev/null; rm -rf '{dir}'",
         stop = pg.stop_shell(),
         here_if = far.here_if,
         ns = far.ns,
         dir = dir.path().display()
-    );
-    Command::new("sh")
-        .args(["-c", &script])
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("watchdog");
+    ))
+    .unwrap_or_else(|e| panic!("{T}: {e}"));
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

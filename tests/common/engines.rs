@@ -6,7 +6,7 @@
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Command, Stdio};
 
 /// Directory of `initdb`/`pg_ctl`: `SHAPESEEK_PG_BIN`, the newest `/usr/lib/postgresql/*/bin`
 /// (Debian's layout), or PATH.
@@ -70,6 +70,24 @@ pub fn as_pg_user(root: bool, cmd: &Path) -> Command {
     } else {
         Command::new(cmd)
     }
+}
+
+/// Runs the shell command `then` once this test process is gone, however it ends: a process
+/// killed outright (a CI watchdog) runs no `Drop`, so what it started would outlive it. Err
+/// says why the watchdog could not start.
+pub fn after_exit(then: &str) -> Result<(), String> {
+    let script = format!(
+        "while kill -0 {pid} 2>/dev/null; do sleep 1; done; {then}",
+        pid = std::process::id()
+    );
+    Command::new("sh")
+        .args(["-c", &script])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .map_err(|e| format!("watchdog: {e}"))?;
+    Ok(())
 }
 
 /// A free TCP port on 127.0.0.1.
