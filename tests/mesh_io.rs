@@ -1157,6 +1157,33 @@ fn gltf_node_cycle_is_an_error_not_a_hang() {
     assert!(e.to_string().contains("cycle"), "{e}");
 }
 
+/// Shared children multiply the visits of a node's mesh, and each visit walks every primitive of
+/// that mesh: 19 levels of two shared children (2¹⁹ − 1 node visits, under the reader's bound of
+/// 2²⁰) over one mesh of 2 000 primitives (points, which are skipped) is a 300 KB file and 10⁹
+/// primitive visits (measured before primitives counted: about 8 s here; 40 MB, hours). With
+/// primitives counted against the bound it is refused after 2²⁰ of them.
+#[test]
+fn gltf_shared_children_over_many_primitives_is_refused() {
+    let tri = [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let levels = 19;
+    let nodes: Vec<serde_json::Value> = (0..levels)
+        .map(|i| {
+            if i + 1 < levels {
+                serde_json::json!({"mesh": 0, "children": [i + 1, i + 1]})
+            } else {
+                serde_json::json!({"mesh": 0})
+            }
+        })
+        .collect();
+    let doc = gltf_doc(&tri, None, None, 0, nodes.into(), serde_json::json!([0]));
+    let mut v: serde_json::Value = serde_json::from_slice(&doc).unwrap();
+    let prim = v["meshes"][0]["primitives"][0].clone();
+    v["meshes"][0]["primitives"] = vec![prim; 2000].into();
+    let e = read(&serde_json::to_vec(&v).unwrap(), None).unwrap_err();
+    assert_eq!(e.code(), "mesh.parse", "{e}");
+    assert!(e.to_string().contains("visits"), "{e}");
+}
+
 #[test]
 fn truncated_binary_stl_starting_with_solid_reports_truncation() {
     let mut bin = to_bytes(|w| write_stl(&icosphere(0), StlEncoding::Binary, w));

@@ -33,7 +33,9 @@ const CHUNK_JSON: u32 = 0x4E4F_534A;
 const CHUNK_BIN: u32 = 0x004E_4942;
 /// Bound on the node hierarchy depth (guards against cycles).
 const MAX_DEPTH: usize = 256;
-/// Bound on node visits (guards against exponential fan-out of shared children).
+/// Bound on node visits plus the primitives walked on them (guards against exponential fan-out
+/// of shared children: each visit of a node walks every primitive of its mesh, so a small file
+/// of shared children over a mesh of many primitives would otherwise be hours of work).
 const MAX_VISITS: usize = 1 << 20;
 
 fn perr(msg: impl Into<String>) -> Error {
@@ -446,6 +448,14 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
             stack.push((c, world, depth + 1));
         }
         let Some(mesh) = node.mesh() else { continue };
+        visits = visits.saturating_add(mesh.primitives().len());
+        if visits > MAX_VISITS {
+            return Err(perr(format!(
+                "more than {MAX_VISITS} node and primitive visits (shared children over a mesh \
+                 of {} primitives)",
+                mesh.primitives().len()
+            )));
+        }
         let flip = det3(&world) < 0.0;
         for prim in mesh.primitives() {
             let mode = prim.mode();
