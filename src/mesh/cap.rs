@@ -50,6 +50,19 @@
 //! angle below [`MIN_CAP_ANGLE_DEG`] (a crack: such slivers make the cotangent Laplacian
 //! ill-conditioned). Both are counted in [`CapStats`].
 //!
+//! # The caps' size is bounded
+//!
+//! A cap as above has about `m² / 4π` vertices: as many as the mesh has around a hole of
+//! ordinary size (at most 0.63 of the mesh's vertices on `bench/dev`, `face-cut2`), but a loop
+//! sampled much more finely than the rest of the mesh — a cup of 4 001 vertices whose rim has
+//! 2 000 — would get 400 000, and a rim of 8 000 vertices several GB and minutes of edge flips.
+//! So the caps of one mesh add at most [`cap_budget`] vertices (as many as the mesh has, at
+//! least [`MIN_CAP_BUDGET`]). A loop whose cap would not fit what is left of it gets a
+//! coarser cap of the same dome: `R f` rings of `max(3, round(m s_r f))` vertices, `f` the
+//! largest factor (from `sqrt(budget / size)` down by tenths) that fits, the first band then
+//! joining the loop's `m` vertices to about `m s_1 f` ([`CapStats::loops_coarsened`]). Below
+//! `f = 1/64` its first band could only be slivers, and the loop is left open.
+//!
 //! Loops are read off the directed boundary half-edges (edges with one incident face). A
 //! vertex where two loops touch (a "bow tie") is visited once per loop. A loop along a
 //! non-orientable patch, whose faces do not all traverse it one way round, has no directed
@@ -79,10 +92,33 @@ pub struct CapStats {
     pub loops_too_long: usize,
     /// Loops left open because their cap would have had a triangle with an angle below
     /// [`MIN_CAP_ANGLE_DEG`] (a crack or a slit, e.g. lips almost closed: such slivers make the
-    /// cotangent Laplacian ill-conditioned).
+    /// cotangent Laplacian ill-conditioned), or would not fit the mesh's [`cap_budget`] even
+    /// made coarser (module docs).
     #[serde(default)]
     pub loops_left_open: usize,
+    /// Loops capped, counted in [`loops`](Self::loops), with a coarser cap than the module
+    /// docs' design because that one would not have fitted the mesh's [`cap_budget`]. Left out
+    /// of the JSON when 0.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub loops_coarsened: usize,
 }
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
+/// Least number of vertices the caps of one mesh may add ([`cap_budget`]).
+pub const MIN_CAP_BUDGET: usize = 1024;
+
+/// Most vertices the caps of a mesh of `vertices` vertices add together: as many as the mesh
+/// has, and at least [`MIN_CAP_BUDGET`] (module docs).
+pub fn cap_budget(vertices: usize) -> usize {
+    vertices.max(MIN_CAP_BUDGET)
+}
+
+/// The coarsest cap built ([`cap_boundaries`]): ring sizes and ring count at least this
+/// fraction of the design's.
+const MIN_COARSENING: f64 = 1.0 / 64.0;
 
 /// Which loops [`cap_boundaries`] closes.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -277,22 +313,25 @@ pub fn cap_boundaries(mesh: &Mesh, opts: &CapOptions) -> (Mesh, CapStats) {
     let mut faces = mesh.faces.clone();
     let mut stats = CapStats::default();
     let min_angle = MIN_CAP_ANGLE_DEG.to_radians();
+    let budget = cap_budget(mesh.vertices.len());
     for lp in &loops {
         if loop_length(&mesh.vertices, lp) > max_len {
             stats.loops_too_long += 1;
             continue;
         }
         let (v0, f0) = (vertices.len(), faces.len());
-        let built = cap_loop(&mut vertices, &mut faces, lp, opts.dome_height);
-        if built {
+        let left = budget - stats.vertices_added;
+        let built = cap_loop(&mut vertices, &mut faces, lp, opts.dome_height, left);
+        if built != Built::No {
             delaunay_flips(&vertices, &mut faces[f0..], v0 as u32);
         }
-        let ok = built
+        let ok = built != Built::No
             && faces[f0..]
                 .iter()
                 .all(|f| smallest_angle(&vertices, f) >= min_angle);
         if ok {
             stats.loops += 1;
+            stats.loops_coarsened += usize::from(built == Built::Coarser);
             stats.vertices_added += vertices.len() - v0;
             stats.faces_added += faces.len() - f0;
         } else {
@@ -316,25 +355,37 @@ fn loop_length(vertices: &[[f64; 3]], lp: &[u32]) -> f64 {
         .sum()
 }
 
-/// Appends the cap of `lp` (module docs); `false` when the loop has no length.
+/// What [`cap_loop`] appended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Built {
+    /// Nothing: the loop has no length, or no cap of it fits the budget.
+    No,
+    /// The cap of the module docs.
+    AsDesigned,
+    /// A coarser cap of the same dome, to fit the budget.
+    Coarser,
+}
+
+/// Appends the cap of `lp` (module docs) with at most `budget` vertices.
 fn cap_loop(
     vertices: &mut Vec<[f64; 3]>,
     faces: &mut Vec<[u32; 3]>,
     lp: &[u32],
     dome_height: f64,
-) -> bool {
+    budget: usize,
+) -> Built {
     let m = lp.len();
     let p: Vec<[f64; 3]> = lp.iter().map(|&i| vertices[i as usize]).collect();
     // A triangle's orientation against the loop: the loop runs a→b, the cap b→a.
     let push = |faces: &mut Vec<[u32; 3]>, a: u32, b: u32, c: u32| faces.push([b, a, c]);
     if m == 3 {
         push(faces, lp[0], lp[1], lp[2]);
-        return true;
+        return Built::AsDesigned;
     }
     let seg: Vec<f64> = (0..m).map(|i| dist(p[i], p[(i + 1) % m])).collect();
     let total: f64 = seg.iter().sum();
     if !(total > 0.0 && total.is_finite()) {
-        return false;
+        return Built::No;
     }
     // Arc-length parameter of each loop vertex.
     let mut u = Vec::with_capacity(m);
@@ -397,11 +448,38 @@ fn cap_loop(
     };
     let rings = ((m as f64) / std::f64::consts::TAU).round().max(1.0) as usize;
     // The meridian's aspect: the dome's height over the loop's own radius.
-    let shrink = meridian_shrinks(rings, dome_height * rho / rho_len);
+    let aspect = dome_height * rho / rho_len;
+    // The rings' shrink factors and sizes for `rings` rings of `f` times the design's sizes;
+    // the cap then adds the sizes' sum plus its centre.
+    let plan = |rings: usize, f: f64| -> (Vec<f64>, Vec<usize>) {
+        let shrink = meridian_shrinks(rings, aspect);
+        let sizes = shrink[1..]
+            .iter()
+            .map(|&s| ((m as f64 * s * f).round() as usize).max(3))
+            .collect();
+        (shrink, sizes)
+    };
+    let added = |sizes: &[usize]| sizes.iter().sum::<usize>() + 1;
+    let (mut shrink, mut sizes) = plan(rings, 1.0);
+    let mut built = Built::AsDesigned;
+    if added(&sizes) > budget {
+        built = Built::Coarser;
+        let mut f = (budget as f64 / added(&sizes) as f64).sqrt();
+        loop {
+            if f < MIN_COARSENING {
+                return Built::No;
+            }
+            let r = ((rings as f64 * f).round() as usize).max(1);
+            (shrink, sizes) = plan(r, f);
+            if added(&sizes) <= budget {
+                break;
+            }
+            f *= 0.9;
+        }
+    }
     let mut outer: Vec<u32> = lp.to_vec();
     let mut outer_u: Vec<f64> = u.clone();
-    for &s in &shrink[1..] {
-        let k = ((m as f64 * s).round() as usize).max(3);
+    for (&s, &k) in shrink[1..].iter().zip(&sizes) {
         let first = vertices.len() as u32;
         let inner_u: Vec<f64> = (0..k).map(|j| j as f64 / k as f64).collect();
         for &t in &inner_u {
@@ -418,7 +496,7 @@ fn cap_loop(
     for i in 0..n {
         push(faces, outer[i], outer[(i + 1) % n], centre);
     }
-    true
+    built
 }
 
 /// The shrink factors `s_r` of rings `r = 0 … rings − 1` (ring 0 is the loop, `s = 1`): the
@@ -880,6 +958,70 @@ mod tests {
         let (c, st) = cap_boundaries(&Mesh::new(s.vertices.clone(), faces), &ALL);
         assert_eq!((st.loops, st.loops_left_open), (1, 0));
         assert!(boundary_loops(c.vertices.len(), &c.faces).is_empty());
+    }
+
+    /// A cup: a tube of radius 1 and height 1 closed at the bottom by a fan, whose open rim
+    /// has `m` vertices and whose side is one row of thin triangles: `2m + 1` vertices, the
+    /// rim sampled far more finely than the rest.
+    fn cup(m: u32) -> Mesh {
+        let ring = |z: f64| {
+            (0..m).map(move |i| {
+                let a = i as f64 / m as f64 * std::f64::consts::TAU;
+                [a.cos(), a.sin(), z]
+            })
+        };
+        let mut v: Vec<[f64; 3]> = ring(1.0).chain(ring(0.0)).collect();
+        v.push([0.0, 0.0, 0.0]);
+        let (top, bottom, centre) = (|i: u32| i % m, |i: u32| m + i % m, 2 * m);
+        let mut f = Vec::new();
+        for i in 0..m {
+            // Outward normals: the side faces outwards, the bottom downwards.
+            f.push([bottom(i), bottom(i + 1), top(i + 1)]);
+            f.push([bottom(i), top(i + 1), top(i)]);
+            f.push([centre, bottom(i + 1), bottom(i)]);
+        }
+        Mesh::new(v, f)
+    }
+
+    /// The design's cap of a rim of `m` vertices has about `m² / 4π`: 400 000 for a cup of
+    /// 4 001 vertices whose rim has 2 000 (measured before the budget: 23.7 s and 2 GB in the
+    /// server for one upload). Now the caps add at most [`cap_budget`] vertices, here with a
+    /// coarser cap that still closes the cup without slivers; a rim as finely sampled as the
+    /// cut sphere's keeps the design's cap.
+    #[test]
+    fn a_finely_sampled_rim_gets_a_coarser_cap_within_the_budget() {
+        let m = cup(2000);
+        let n = m.vertices.len();
+        let (c, st) = cap_boundaries(&m, &ALL);
+        assert_eq!(
+            (st.loops, st.loops_coarsened, st.loops_left_open),
+            (1, 1, 0),
+            "{st:?}"
+        );
+        assert!(st.vertices_added <= cap_budget(n), "{st:?}");
+        assert!(st.vertices_added > cap_budget(n) / 2, "{st:?}");
+        assert!(closed_and_oriented(&c));
+        let min_angle = c.faces[m.faces.len()..]
+            .iter()
+            .map(|f| smallest_angle(&c.vertices, f))
+            .fold(f64::INFINITY, f64::min);
+        assert!(min_angle >= MIN_CAP_ANGLE_DEG.to_radians());
+        // Still a dome over the rim: its apex half the rim's radius above it (DOME_HEIGHT).
+        let apex = c.vertices.last().unwrap()[2];
+        assert!((apex - (1.0 + DOME_HEIGHT)).abs() < 0.01, "{apex}");
+        // A small cup's rim is within the budget and gets the design's cap.
+        let (_, small) = cap_boundaries(&cup(60), &ALL);
+        assert_eq!((small.loops, small.loops_coarsened), (1, 0), "{small:?}");
+        // No cap at all fits a budget that is a sliver's worth: the loop stays open.
+        let tight = cup(4000);
+        let mut v = tight.vertices.clone();
+        let mut f = tight.faces.clone();
+        let lp = &boundary_loops(v.len(), &f)[0];
+        assert_eq!(cap_loop(&mut v, &mut f, lp, DOME_HEIGHT, 20), Built::No);
+        assert_eq!(
+            (v.len(), f.len()),
+            (tight.vertices.len(), tight.faces.len())
+        );
     }
 
     #[test]

@@ -183,6 +183,51 @@ mod tests {
     use crate::error::LimitKind;
     use crate::Error;
 
+    /// Every problem code the server's sources spell out is in the API description's list of
+    /// stable codes (eleven were missing from it until this test; the client's own
+    /// `server.unreachable` never comes from a server).
+    #[test]
+    fn every_code_the_sources_name_is_listed_in_the_api_description() {
+        let api = include_str!("../../api/openapi.yaml");
+        let listed = &api[..api.find("servers:").expect("the description's end")];
+        let prefixes = [
+            "mesh", "spectrum", "limit", "shape", "request", "route", "server", "job", "queue",
+            "search",
+        ];
+        let mut missing = std::collections::BTreeSet::new();
+        let mut dirs = vec![std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("src")];
+        let mut seen = 0;
+        while let Some(d) = dirs.pop() {
+            for e in std::fs::read_dir(&d).unwrap() {
+                let p = e.unwrap().path();
+                if p.is_dir() {
+                    if !p.ends_with("cli") {
+                        dirs.push(p);
+                    }
+                    continue;
+                }
+                let text = std::fs::read_to_string(&p).unwrap();
+                for lit in text.split('"').skip(1).step_by(2) {
+                    let Some((pre, rest)) = lit.split_once('.') else {
+                        continue;
+                    };
+                    let word = |c: char| c.is_ascii_lowercase() || c == '_';
+                    if prefixes.contains(&pre) && !rest.is_empty() && rest.chars().all(word) {
+                        seen += 1;
+                        if !listed.contains(&format!("`{lit}`")) {
+                            missing.insert(lit.to_string());
+                        }
+                    }
+                }
+            }
+        }
+        assert!(
+            seen > 30,
+            "only {seen} codes found: is the scan reading the sources?"
+        );
+        assert!(missing.is_empty(), "not in api/openapi.yaml: {missing:?}");
+    }
+
     /// The public status and code of every library error kind (the codes are a contract).
     #[test]
     fn every_error_kind_has_its_status_and_code() {
