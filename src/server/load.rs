@@ -80,6 +80,7 @@ impl App {
             ready: AtomicBool::new(false),
             recalibrating: AtomicBool::new(false),
             adopting: Arc::new(tokio::sync::Mutex::new(())),
+            writes: Arc::new(tokio::sync::Mutex::new(())),
             metrics: m::handle(),
             cluster: None,
         };

@@ -41,6 +41,8 @@ mod sample;
 pub mod shard;
 pub mod state;
 #[cfg(test)]
+mod state_tests;
+#[cfg(test)]
 mod test_support;
 pub mod web;
 

@@ -28,9 +28,7 @@ use super::admission::{Cancel, Cost};
 use super::env::{gw_scores, pairwise, rescore};
 use super::ms;
 use super::problem::ApiError;
-use super::state::{
-    decode_payload, no_payload, App, Hitting, SearchOptions, SearchPlan, SearchResult,
-};
+use super::state::{App, Hitting, SearchOptions, SearchPlan, SearchResult};
 use crate::index::ScanIndex;
 use crate::queue::shard::{
     answer_messages, decode_request, encode_reply, fingerprint, id_number, scatter, send_reply,
@@ -299,10 +297,7 @@ impl App {
         let query_payload = match (upload_payload, &opts.id) {
             _ if !needs_payload => None,
             (Some(p), _) => Some(p),
-            (None, Some(id)) => {
-                let b = self.store.payload(id).await.map_err(ApiError::internal)?;
-                Some(decode_payload(id, &b.ok_or_else(|| no_payload(id))?)?)
-            }
+            (None, Some(id)) => Some(self.query_payload(id).await?),
             (None, None) => None,
         };
         let exclude = if opts.include_self {

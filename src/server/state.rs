@@ -43,6 +43,11 @@ pub struct App {
     /// Held while a stored calibration is installed ([`App::adopt_stored_calibration`]): one
     /// install at a time, the others then find it done.
     pub(super) adopting: Arc<tokio::sync::Mutex<()>>,
+    /// Held while a shape enters the scan after the store has it, and while a delete removes
+    /// one from the store and then from the scan: a shape enters only while the store still
+    /// holds it, so a delete that races its ingest (or the change feed's insert) cannot leave
+    /// it in the scan, searchable, after the store lost it.
+    pub(super) writes: Arc<tokio::sync::Mutex<()>>,
     /// Metrics handle.
     pub metrics: Option<metrics_exporter_prometheus::PrometheusHandle>,
     /// The work queue and change feed, when this node is one of a cluster.
@@ -268,6 +273,19 @@ impl App {
         }
     }
 
+    /// The stored payload of the query `id`, for a search whose stage compares payloads: 404
+    /// when the shape is gone (a delete that has reached the store and not yet the scan),
+    /// 409 `shape.no_payload` when it is stored without one.
+    pub(super) async fn query_payload(&self, id: &str) -> Result<GwPayload, ApiError> {
+        match self.store.payload(id).await.map_err(storage)? {
+            Some(b) => decode_payload(id, &b),
+            None if self.store.get(id).await.map_err(storage)?.is_none() => {
+                Err(ApiError::not_found(id))
+            }
+            None => Err(no_payload(id)),
+        }
+    }
+
     /// Current calibration epoch (0 = none yet).
     pub fn epoch(&self) -> u64 {
         let s = self.scan.read().unwrap_or_else(|p| p.into_inner());
@@ -365,8 +383,13 @@ impl App {
             InsertOutcome::Inserted(id) => id,
         };
         {
-            let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
-            scan.insert(&self.engine, &id, &record.name, &record.tags, &sig, 1);
+            // A delete of this id may have reached the store since the insert (ids are
+            // sequential and can be guessed): then the shape does not enter the scan.
+            let _writes = self.writes.blocking_lock();
+            if self.block(self.store.get(&id)).map_err(storage)?.is_some() {
+                let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
+                scan.insert(&self.engine, &id, &record.name, &record.tags, &sig, 1);
+            }
         }
         t.store_ms = ms(t3);
         t.total_ms = ms(t0);
@@ -393,11 +416,13 @@ impl App {
 
     /// Deletes a shape. False when absent.
     pub async fn delete(self: &Arc<Self>, id: String) -> Result<bool, ApiError> {
+        let writes = self.writes.clone().lock_owned().await;
         let removed = self.store.delete(&id).await.map_err(storage)?;
         let app = self.clone();
         let held = id.clone();
         // The scan's write lock may wait for a running search: not on an async worker.
         tokio::task::spawn_blocking(move || {
+            let _writes = writes;
             app.scan
                 .write()
                 .unwrap_or_else(|p| p.into_inner())
@@ -643,9 +668,7 @@ impl App {
                 let query_payload = match (&upload_payload, &opts.id) {
                     _ if !needs_payload => None,
                     (Some(p), _) => Some(p.clone()),
-                    (None, Some(id)) => {
-                        Some(app.stored_payload(id)?.ok_or_else(|| no_payload(id))?)
-                    }
+                    (None, Some(id)) => Some(app.block(app.query_payload(id))?),
                     (None, None) => None,
                 };
                 let exclude = if opts.include_self { None } else { self_at };

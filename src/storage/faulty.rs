@@ -21,6 +21,8 @@ pub(crate) struct Faulty {
     pub fail_signature_reads: AtomicBool,
     /// Called on every read of a shape's signature (`signature`), before it.
     pub on_signature_read: Mutex<Option<Arc<dyn Fn() + Send + Sync>>>,
+    /// Called with the id after each insert that stored a new shape, before it returns.
+    pub after_insert: Mutex<Option<Arc<dyn Fn(&str) + Send + Sync>>>,
     /// Reads of a page of signatures (`scan_signatures`) fail.
     pub fail_scans: AtomicBool,
     /// Pages of `scan_signatures` hold at most this many (0: no cap): short pages before the
@@ -37,6 +39,7 @@ impl Faulty {
             fail_signature_reads: AtomicBool::new(false),
             fail_scans: AtomicBool::new(false),
             on_signature_read: Mutex::new(None),
+            after_insert: Mutex::new(None),
             page_cap: AtomicUsize::new(0),
         }
     }
@@ -91,7 +94,14 @@ impl ShapeStore for Faulty {
         self.inner.new_id().await
     }
     async fn insert(&self, shape: NewShape) -> Result<InsertOutcome> {
-        self.inner.insert(shape).await
+        let out = self.inner.insert(shape).await?;
+        if let InsertOutcome::Inserted(id) = &out {
+            let hook = self.after_insert.lock().unwrap().clone();
+            if let Some(f) = hook {
+                f(id);
+            }
+        }
+        Ok(out)
     }
     async fn id_for_hash(&self, sha256: &[u8; 32]) -> Result<Option<String>> {
         self.inner.id_for_hash(sha256).await

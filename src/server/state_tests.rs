@@ -1,0 +1,63 @@
+//! A delete that races an ingest or a search on the same node.
+
+use super::state::SearchOptions;
+use super::test_support::{ingest, meshes, OnFaulty};
+use std::sync::Arc;
+
+/// Ids are sequential: a client can delete a shape while its upload is being stored. When the
+/// delete reaches the store between the ingest's insert and its entry into the scan, the
+/// shape must not enter the scan (before `App::writes`: it did, and stayed searchable after
+/// the 204 until the node restarted, its GET answering 404).
+#[test]
+fn a_delete_between_an_ingests_store_insert_and_its_scan_entry_leaves_no_ghost() {
+    let n = OnFaulty::start(2, |_| {});
+    let (app, handle) = (n.app.clone(), n.rt.handle().clone());
+    let deleted = Arc::new(std::sync::Mutex::new(None));
+    let seen = deleted.clone();
+    *n.faulty.after_insert.lock().unwrap() = Some(Arc::new(move |id: &str| {
+        // The delete runs to its end (another thread, the node's own path) before the
+        // ingest goes on.
+        let (app, handle, id) = (app.clone(), handle.clone(), id.to_string());
+        let ok = std::thread::spawn(move || handle.block_on(app.delete(id)))
+            .join()
+            .unwrap()
+            .unwrap();
+        *seen.lock().unwrap() = Some(ok);
+    }));
+    let id = ingest(&n.app, &n.rt, &meshes()[2], "raced");
+    *n.faulty.after_insert.lock().unwrap() = None;
+    assert_eq!(
+        *deleted.lock().unwrap(),
+        Some(true),
+        "the delete found it stored"
+    );
+    assert!(n.app.block(n.store.get(&id)).unwrap().is_none());
+    let scan = n.app.scan.read().unwrap();
+    assert!(
+        scan.position(&id).is_none(),
+        "{id} is in the scan after its delete"
+    );
+    assert_eq!(scan.len(), 2);
+}
+
+/// A search by id whose stage reads the query's payload, after the shape's delete reached the
+/// store and before it reached the scan: 404 `shape.not_found`, not 409 `shape.no_payload`
+/// ("its original could not be analysed"), which is what it answered before.
+#[test]
+fn a_search_by_a_shape_deleted_from_the_store_is_not_found() {
+    let n = OnFaulty::start(3, |_| {});
+    let id = n.app.scan.read().unwrap().id(0).to_string();
+    // The store's delete alone, as a concurrent delete leaves it until the scan's lock frees.
+    assert!(n.app.block(n.store.delete(&id)).unwrap());
+    let opts: SearchOptions = serde_json::from_value(serde_json::json!({
+        "id": id, "top_k": 2, "rerank": [{"stage": "spectral_gw", "shortlist": 2}]
+    }))
+    .unwrap();
+    let e = n.rt.block_on(n.app.search(opts, None, None)).unwrap_err();
+    assert_eq!(
+        (e.status.as_u16(), e.code.as_str()),
+        (404, "shape.not_found"),
+        "{}",
+        e.detail
+    );
+}
