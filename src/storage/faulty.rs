@@ -11,6 +11,9 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// The wrapped store and the switches.
+/// A test's hook, called with a shape's id.
+pub(crate) type IdHook = Arc<dyn Fn(&str) + Send + Sync>;
+
 pub(crate) struct Faulty {
     inner: Arc<dyn ShapeStore>,
     /// Calibration commits fail (the lock is released, nothing written).
@@ -22,7 +25,7 @@ pub(crate) struct Faulty {
     /// Called on every read of a shape's signature (`signature`), before it.
     pub on_signature_read: Mutex<Option<Arc<dyn Fn() + Send + Sync>>>,
     /// Called with the id after each insert that stored a new shape, before it returns.
-    pub after_insert: Mutex<Option<Arc<dyn Fn(&str) + Send + Sync>>>,
+    pub after_insert: Mutex<Option<IdHook>>,
     /// Reads of a page of signatures (`scan_signatures`) fail.
     pub fail_scans: AtomicBool,
     /// Pages of `scan_signatures` hold at most this many (0: no cap): short pages before the
