@@ -199,9 +199,27 @@ async fn problem_catch_all(resp: Response) -> Response {
     out
 }
 
+/// The `method` label of the request metrics: one of the methods the API has, else `other`.
+/// A client may send any token as a method (each one answered 405): as a label it would make
+/// a new series per token, and `/metrics` and the server's memory grow without bound (20
+/// requests with 50 000-byte methods took `/metrics` from 0.6 MB to 19.7 MB).
+fn method_label(m: &axum::http::Method) -> &'static str {
+    use axum::http::Method;
+    match *m {
+        Method::GET => "GET",
+        Method::HEAD => "HEAD",
+        Method::POST => "POST",
+        Method::PUT => "PUT",
+        Method::DELETE => "DELETE",
+        Method::OPTIONS => "OPTIONS",
+        Method::PATCH => "PATCH",
+        _ => "other",
+    }
+}
+
 async fn metrics_mw(req: Request, next: Next) -> Response {
     let start = Instant::now();
-    let method = req.method().to_string();
+    let method = method_label(req.method());
     let route = req
         .extensions()
         .get::<MatchedPath>()
@@ -209,7 +227,7 @@ async fn metrics_mw(req: Request, next: Next) -> Response {
         .unwrap_or_else(|| "unmatched".into());
     let resp = next.run(req).await;
     let status = resp.status().as_u16().to_string();
-    metrics::counter!("shapeseek_http_requests_total", "method" => method.clone(), "route" => route.clone(), "status" => status).increment(1);
+    metrics::counter!("shapeseek_http_requests_total", "method" => method, "route" => route.clone(), "status" => status).increment(1);
     metrics::histogram!("shapeseek_http_request_duration_seconds", "method" => method, "route" => route)
         .record(start.elapsed().as_secs_f64());
     resp
@@ -370,5 +388,18 @@ mod tests {
         ))
         .await;
         assert!(!r.headers().contains_key(header::RETRY_AFTER));
+    }
+
+    /// Made-up methods share one label (each would otherwise be a new series).
+    #[test]
+    fn a_made_up_method_is_labelled_other() {
+        use axum::http::Method;
+        for m in ["Y0AAAA", "get", "PROPFIND"] {
+            assert_eq!(
+                method_label(&Method::from_bytes(m.as_bytes()).unwrap()),
+                "other"
+            );
+        }
+        assert_eq!(method_label(&Method::DELETE), "DELETE");
     }
 }
