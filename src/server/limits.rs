@@ -56,6 +56,14 @@ pub fn stored_original(
 /// client trickling its body holds a connection for at most `body_read_timeout`. An announced
 /// size over the limit is refused with 413 before hyper sends `100 Continue` (it sends it only
 /// when the body is first read).
+///
+/// A body takes from the budget what has arrived of it (in steps of [`RESERVE_STEP`]), not
+/// what it announces or could grow to: when a chunked body reserved the largest body up front
+/// and an announced one its `Content-Length`, four clients that each sent a few bytes of a
+/// chunked upload and then one every few seconds held the whole budget, and every POST (a
+/// 40-byte search too) was refused with 503 for as long as they kept it up. A body that cannot
+/// take the next step is answered 503 `server.busy` then (the budget is full of bytes that
+/// did arrive).
 pub struct BodyGate {
     /// Largest body, bytes.
     pub max_body_bytes: usize,
@@ -88,6 +96,9 @@ impl BodyGate {
         self.budget_kib.available_permits()
     }
 }
+
+/// The steps in which a body takes from the budget as it arrives.
+pub const RESERVE_STEP: usize = 64 * 1024;
 
 fn kib(bytes: usize) -> u32 {
     bytes.div_ceil(1024).min(u32::MAX as usize) as u32
@@ -135,21 +146,31 @@ pub async fn admit_body(
             return next.run(req).await;
         }
     }
-    let reserve = declared.map_or(gate.max_body_bytes, |n| n as usize);
-    let Ok(permit) = gate.budget_kib.clone().try_acquire_many_owned(kib(reserve)) else {
+    let busy = || {
         metrics::counter!("shapeseek_bodies_refused_total").increment(1);
         let mut e = ApiError::busy(gate.retry_after);
         e.detail = "too many request bodies in flight; retry later".into();
-        return e.into_response();
+        e
+    };
+    let first = declared.map_or(RESERVE_STEP, |n| (n as usize).min(RESERVE_STEP));
+    let Ok(mut permit) = gate.budget_kib.clone().try_acquire_many_owned(kib(first)) else {
+        return busy().into_response();
     };
     let (parts, body) = req.into_parts();
     let read = tokio::time::timeout(
         gate.read_timeout,
-        read_whole(body, gate.max_body_bytes, declared.map(|n| n as usize)),
+        read_whole(
+            body,
+            gate.max_body_bytes,
+            declared.map(|n| n as usize),
+            &gate.budget_kib,
+            &mut permit,
+        ),
     )
     .await;
     let bytes = match read {
         Ok(Ok(b)) => b,
+        Ok(Err(BodyReadError::Busy)) => return close(busy()),
         Ok(Err(BodyReadError::TooBig)) => {
             return close(ApiError::new(
                 StatusCode::PAYLOAD_TOO_LARGE,
@@ -189,6 +210,8 @@ enum BodyReadError {
     TooBig,
     /// The connection failed or the body was malformed (e.g. shorter than announced).
     Read(axum::Error),
+    /// The budget had no room for the bytes that arrived.
+    Busy,
 }
 
 /// Reads a whole body into one buffer, sized up front to its announced length, so that the
@@ -196,22 +219,69 @@ enum BodyReadError {
 /// concatenating them afterwards (`axum::body::to_bytes`) holds each body twice at the moment
 /// it completes — with four 60 MiB uploads finishing together, 240 MiB over the budget
 /// (`scripts/memory-test.sh`, glTF peaks of 476–493 MiB against the 448 MiB bound). Each frame
-/// is copied in and dropped as it arrives.
+/// is copied in and dropped as it arrives. (The buffer's pages become resident as they are
+/// written.) `permit` grows from `budget` by [`RESERVE_STEP`]s to cover what has arrived.
 async fn read_whole(
     mut body: axum::body::Body,
     limit: usize,
     declared: Option<usize>,
+    budget: &Arc<Semaphore>,
+    permit: &mut tokio::sync::OwnedSemaphorePermit,
 ) -> Result<axum::body::Bytes, BodyReadError> {
     use http_body_util::BodyExt;
     let mut buf: Vec<u8> = Vec::with_capacity(declared.unwrap_or(0).min(limit));
     while let Some(frame) = body.frame().await {
         let frame = frame.map_err(BodyReadError::Read)?;
         if let Ok(data) = frame.into_data() {
-            if buf.len() + data.len() > limit {
+            let len = buf.len() + data.len();
+            if len > limit {
                 return Err(BodyReadError::TooBig);
+            }
+            let held = permit.num_permits() as u32;
+            if kib(len) > held {
+                let want = kib(len.next_multiple_of(RESERVE_STEP).min(limit)).max(kib(len));
+                let more = budget
+                    .clone()
+                    .try_acquire_many_owned(want - held)
+                    .map_err(|_| BodyReadError::Busy)?;
+                permit.merge(more);
             }
             buf.extend_from_slice(&data);
         }
     }
     Ok(buf.into())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn body(chunks: usize, size: usize) -> axum::body::Body {
+        let frames = (0..chunks)
+            .map(move |_| Ok::<_, std::io::Error>(axum::body::Bytes::from(vec![b'#'; size])));
+        axum::body::Body::from_stream(futures_util::stream::iter(frames))
+    }
+
+    /// A body holds from the budget what has arrived of it, rounded up to a step, and is
+    /// refused once the budget has no room for the next step; the permit is back when dropped.
+    #[tokio::test]
+    async fn a_body_takes_from_the_budget_as_it_arrives() {
+        let budget = Arc::new(Semaphore::new(kib(4 * RESERVE_STEP) as usize));
+        let mut permit = budget.clone().try_acquire_many_owned(1).unwrap();
+        let got = read_whole(body(10, 10_000), 1 << 20, None, &budget, &mut permit)
+            .await
+            .ok()
+            .unwrap();
+        assert_eq!(got.len(), 100_000);
+        // 100 000 bytes: two steps of 64 KiB held, two free.
+        assert_eq!(permit.num_permits(), kib(2 * RESERVE_STEP) as usize);
+        assert_eq!(budget.available_permits(), kib(2 * RESERVE_STEP) as usize);
+        // Another body of 3 steps' bytes does not fit in what is left.
+        let mut other = budget.clone().try_acquire_many_owned(1).unwrap();
+        let r = read_whole(body(20, 10_000), 1 << 20, None, &budget, &mut other).await;
+        assert!(matches!(r, Err(BodyReadError::Busy)));
+        drop(other);
+        drop(permit);
+        assert_eq!(budget.available_permits(), kib(4 * RESERVE_STEP) as usize);
+    }
 }
