@@ -8,10 +8,16 @@
 //! node's heavy lane has with its inserts). Each job:
 //!
 //! 1. claim the job (counts the attempt); unknown (deleted) or no longer pending → ack;
+//!    claimed more than `max_deliver` times → dead letter (503 `job.retries_exhausted`), ack:
+//!    JetStream's delivery count bounds the deliveries of one message, but a job whose worker
+//!    died on it (no nak, no term) is republished by the sweep below as a new message, and
+//!    its count starts again;
 //! 2. the same bytes stored already → mark done, announce, ack (a redelivery after a worker
 //!    died between the insert and the ack ends here);
-//! 3. analyse on a blocking thread, sending "in progress" every third of `ack_wait`; free the
-//!    slot;
+//! 3. analyse on a blocking thread, stopped at the serving nodes' `request_timeout_secs` (as a
+//!    node stops an upload's analysis; a failure to retry), sending "in progress" to JetStream
+//!    and marking the job as seen in PostgreSQL every third of `ack_wait` (so the sweep does
+//!    not republish a job that is being analysed); free the slot;
 //! 4. insert under the job's id (idempotent by content hash), mark done, announce, ack;
 //! 5. a refusal of the input (4xx) → dead letter, ack; any other failure → `nak` with a delay
 //!    until the delivery count reaches `max_deliver`, then a dead letter (503) and `term`.
@@ -210,6 +216,25 @@ impl Worker {
         if input.state != JobState::Pending {
             return Ok(Outcome::Ack);
         }
+        let max_deliver = self.bus.options().max_deliver;
+        if i64::from(input.attempts) > max_deliver {
+            tracing::error!(
+                id,
+                attempts = input.attempts,
+                "job claimed on every delivery and never finished; dead letter"
+            );
+            let dead = DeadLetter {
+                status: 503,
+                code: "job.retries_exhausted".into(),
+                message: format!(
+                    "claimed {} times (more than max_deliver = {max_deliver}) without finishing: \
+                     its workers stopped on it",
+                    input.attempts
+                ),
+            };
+            self.jobs.fail(id, &dead).await?;
+            return Ok(Outcome::Ack);
+        }
         if let Some(existing) = self.store.id_for_hash(&input.sha256).await? {
             self.finish(id, &existing).await?;
             return Ok(Outcome::Ack);
@@ -230,6 +255,9 @@ impl Worker {
                     _ = tokio::time::sleep(beat) => {
                         if let Err(e) = msg.ack_with(AckKind::Progress).await {
                             tracing::warn!(error = %e, id, "progress ack failed");
+                        }
+                        if let Err(e) = self.jobs.touch(id).await {
+                            tracing::warn!(error = %e, id, "marking the job as seen failed");
                         }
                     }
                 }
@@ -283,17 +311,13 @@ impl Worker {
         };
         let (engine, cfg, limits) = (self.engine.clone(), self.cfg.clone(), self.limits);
         let digest = input.sha256;
+        let deadline = Duration::try_from_secs_f64(cfg.request_timeout_secs)
+            .ok()
+            .and_then(|d| std::time::Instant::now().checked_add(d))
+            .map_or_else(Cancel::never, Cancel::until);
         tokio::task::spawn_blocking(move || {
             let mut t = Timings::default();
-            prepare_upload(
-                &engine,
-                &cfg,
-                &limits,
-                &up,
-                digest,
-                &mut t,
-                &Cancel::never(),
-            )
+            prepare_upload(&engine, &cfg, &limits, &up, digest, &mut t, &deadline)
         })
         .await
         .map_err(ApiError::internal)?

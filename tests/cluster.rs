@@ -823,6 +823,73 @@ fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
 /// spec, so a search by upload on the new node finds each shape at distance exactly 0 (the
 /// upload's signature and the stored one are the same computation); a stale signature would not
 /// be at 0.
+/// A job whose workers died on it (an input that aborts the process: no nak, no term) is
+/// delivered `max_deliver` times by JetStream, then republished by the workers' sweep as a new
+/// message whose delivery count starts again: before the claim count was checked, forever,
+/// each time taking a worker down. Its claims are counted in PostgreSQL; one past
+/// `max_deliver` (5 here) ends it as a dead letter without analysing it. The claims are set
+/// in the table as five deaths would have left them.
+#[test]
+fn a_job_claimed_past_max_deliver_is_a_dead_letter() {
+    let Some(engines) = Engines::start("dead_letter", false) else {
+        return;
+    };
+    let (tmp, pg, nats_url) = (engines.tmp(), &engines.pg, engines.nats_url.clone());
+    migrate(&pg.url);
+    let mut meshes = corpus(tmp);
+    meshes.truncate(2);
+    let (node, a) = serve_node("node", tmp, &pg.url, &nats_url);
+    let mut jobs = Vec::new();
+    for (name, bytes) in &meshes {
+        let r = http(
+            a,
+            "POST",
+            &format!("/v1/shapes?name={name}&wait=false"),
+            bytes,
+        )
+        .unwrap();
+        assert_eq!(
+            r.status,
+            202,
+            "{name}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        jobs.push(r.json()["id"].as_str().unwrap().to_string());
+    }
+    // The first job as five deliveries that each killed their worker left it.
+    pg_query(
+        &pg.url,
+        &format!(
+            "WITH u AS (UPDATE jobs SET attempts = 5 WHERE id = {} RETURNING 1) \
+             SELECT count(*)::text FROM u",
+            i64::from_str_radix(&jobs[0], 16).unwrap()
+        ),
+    );
+    let w = worker("worker", tmp, &pg.url, &nats_url);
+    let t = Instant::now();
+    let state = |id: &str| {
+        http(a, "GET", &format!("/v1/jobs/{id}"), b"")
+            .unwrap()
+            .json()
+    };
+    loop {
+        let (dead, done) = (state(&jobs[0]), state(&jobs[1]));
+        if dead["state"] != "pending" && done["state"] != "pending" {
+            assert_eq!(dead["state"], "failed", "{dead}");
+            assert_eq!(dead["error"]["code"], "job.retries_exhausted", "{dead}");
+            assert_eq!(done["state"], "done", "{done}");
+            break;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "jobs still pending: {dead} {done}\n{}\n{}",
+            w.tail(),
+            node.tail()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
 #[test]
 fn a_node_of_another_spec_recomputes_the_signatures_it_applies() {
     let Some(engines) = Engines::start("upgrade", false) else {

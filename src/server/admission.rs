@@ -142,6 +142,15 @@ impl Cancel {
         }
     }
 
+    /// A token that trips at `deadline` (work outside a request with a time limit of its own:
+    /// a queued job's analysis).
+    pub fn until(deadline: Instant) -> Cancel {
+        Cancel {
+            deadline: Some(deadline),
+            ..Cancel::never()
+        }
+    }
+
     /// Counts one unit of work (a GW candidate) left undone because the job was cancelled.
     pub fn note_skipped(&self) {
         self.skipped.fetch_add(1, Ordering::Relaxed);
