@@ -287,6 +287,7 @@ impl ReadLimits {
 /// [`Error::ExternalReference`] for glTF files pointing outside themselves.
 pub fn read_mesh(bytes: &[u8], hint: Option<Format>, limits: &ReadLimits) -> Result<Mesh> {
     limits.check_bytes(bytes.len())?;
+    let bytes = skip_bom(bytes);
     let format = detect_format(bytes, hint)?;
     let mesh = match format {
         Format::Obj => obj::read(bytes, limits)?,
@@ -330,12 +331,23 @@ pub fn read_path(path: impl AsRef<Path>, limits: &ReadLimits) -> Result<Mesh> {
 /// an `"asset"` key → glTF; a binary STL whose size is exactly 84 + 50·n; OBJ statements), then
 /// the hint. [`Error::UnknownFormat`] when neither decides.
 pub fn detect_format(bytes: &[u8], hint: Option<Format>) -> Result<Format> {
-    if let Some(f) = sniff(bytes) {
+    if let Some(f) = sniff(skip_bom(bytes)) {
         return Ok(f);
     }
     hint.ok_or_else(|| {
         Error::UnknownFormat("content not recognised and no usable extension or format hint".into())
     })
+}
+
+/// `bytes` without a leading UTF-8 byte order mark, which some editors write before a text
+/// file: every reader would otherwise see `\u{feff}` glued to the first statement (an OBJ
+/// then dropped its first vertex, and every face index moved by one). A binary STL whose size
+/// is exact with the three bytes is left as it is (its 80-byte header may hold anything).
+fn skip_bom(bytes: &[u8]) -> &[u8] {
+    match bytes.strip_prefix(b"\xEF\xBB\xBF") {
+        Some(rest) if !stl::binary_size_matches(bytes) => rest,
+        _ => bytes,
+    }
 }
 
 fn sniff(bytes: &[u8]) -> Option<Format> {
