@@ -258,7 +258,10 @@ impl StageRequest {
     ) -> Result<Stage> {
         Stage::new(match self {
             StageRequest::Exact { shortlist, spec: s } => {
-                let n = shortlist.unwrap_or(4 * top_k);
+                // The default is clamped to the bound (a request with a top_k over a quarter
+                // of it, and no shortlist, was refused for a shortlist it did not ask for); a
+                // shortlist asked for is checked as it is.
+                let n = shortlist.unwrap_or((4 * top_k).clamp(1, max_shortlist));
                 if n == 0 || n > max_shortlist {
                     return Err(invalid(format!(
                         "rerank shortlist must be in 1..={max_shortlist}"

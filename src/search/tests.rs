@@ -718,6 +718,17 @@ fn stage_forms() {
             .shortlist(),
         200
     );
+    // The exact stage's default (4 × top_k) is clamped to the bound: top_k 30 asks for no
+    // shortlist, so it is not refused for 120 (it was: "rerank shortlist must be in 1..=100").
+    let exact: StageRequest =
+        serde_json::from_value(serde_json::json!({"stage": "exact"})).unwrap();
+    assert_eq!(
+        exact
+            .resolve(30, 100, &|_| Ok(q.clone()))
+            .unwrap()
+            .shortlist(),
+        100
+    );
     for bad in [
         serde_json::json!({"stage": "exact", "shortlist": 101}),
         serde_json::json!({"stage": "spectral_gw", "shortlist": 201}),
