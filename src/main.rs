@@ -150,6 +150,9 @@ pub(crate) fn generated_mesh(desc: &str) -> shapeseek::Result<Mesh> {
 
 fn run_spectrum(args: &SpectrumArgs) -> Result<(), CliError> {
     let t0 = Instant::now();
+    if args.k == 0 {
+        return Err(CliError::usage("--k 0: ask for at least one eigenpair"));
+    }
     let (mesh, source) = match (&args.file, &args.generate) {
         (Some(path), _) => {
             let bytes = cli::read_file(path)?;
@@ -284,6 +287,16 @@ fn main() -> ExitCode {
             )
             .with_writer(std::io::stderr)
             .init();
+    }
+    if !matches!(cli.command, Command::Serve(_) | Command::Worker(_)) {
+        // A command whose output goes to a pipe that closes (`shapeseek spectrum … | head`)
+        // ends as other command-line tools do, by SIGPIPE, instead of panicking on the
+        // failed print (Rust ignores SIGPIPE by default). Sockets are not concerned: the
+        // standard library sends with MSG_NOSIGNAL. The servers keep ignoring it.
+        // SAFETY: resetting a signal's disposition at start-up, before any thread is spawned.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
     }
     let result: Result<(), CliError> = match &cli.command {
         Command::Spectrum(a) => run_spectrum(a),

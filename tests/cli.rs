@@ -384,6 +384,89 @@ fn ingest_reports_an_unreachable_server_and_bad_arguments() {
     assert!(o.stderr.contains("--name names one shape"), "{}", o.stderr);
 }
 
+/// Small faults an outside review of the command line found, each once a panic, a silent
+/// success, a misleading error or minutes of silence.
+#[test]
+fn usage_faults_are_refused_plainly() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Output into a pipe that is already closed: no panic (it was `failed printing to
+    // stdout: Broken pipe`, exit 101); the command ends by SIGPIPE as `… | head` expects.
+    let mut child = Command::new(BIN)
+        .args(["spectrum", "--generate", "icosphere:2", "--k", "20"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_ne!(o.status.code(), Some(101), "{stderr}");
+    // Zero eigenpairs (it printed one).
+    let o = run(&["spectrum", "--generate", "icosphere:1", "--k", "0"]);
+    assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("--k 0"), "{}", o.stderr);
+    // Nothing to ingest (it reported "0 new, 0 already stored, 0 failed" and exit 0).
+    let empty = tmp.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let o = run(&["ingest", "--data", s(&tmp.path().join("d0")), s(&empty)]);
+    assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("no mesh files found in"), "{}", o.stderr);
+    // An exported SHAPESEEK_URL does not make `--data` a conflict (it was a usage error).
+    let files = meshes(&tmp.path().join("m"), 1, 300);
+    let o = Command::new(BIN)
+        .args([
+            "ingest",
+            "--quiet",
+            "--data",
+            s(&tmp.path().join("d1")),
+            s(&files[0]),
+        ])
+        .env("SHAPESEEK_URL", "http://127.0.0.1:9")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // A benchmark over zero shapes (it panicked on a remainder by zero).
+    let o = run(&["bench", "search", "--sizes", "0"]);
+    assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
+    // A worker count no machine has (it started threads for minutes, silently).
+    let o = run(&[
+        "serve",
+        "--data",
+        s(&tmp.path().join("d2")),
+        "--workers",
+        "100000",
+    ]);
+    assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("workers must be in"), "{}", o.stderr);
+    // A taken port names the address (it said only "Address already in use"), and an
+    // address without a port is a usage error (it was an I/O one, 74).
+    let taken = TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let o = run(&[
+        "serve",
+        "--data",
+        s(&tmp.path().join("d3")),
+        "--addr",
+        &addr,
+    ]);
+    assert_eq!(o.code, 74, "{}{}", o.stdout, o.stderr);
+    assert!(
+        o.stderr.contains(&format!("cannot listen on {addr}")),
+        "{}",
+        o.stderr
+    );
+    let o = run(&[
+        "serve",
+        "--data",
+        s(&tmp.path().join("d4")),
+        "--addr",
+        "127.0.0.1",
+    ]);
+    assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("is not HOST:PORT"), "{}", o.stderr);
+}
+
 #[test]
 fn file_errors_name_their_path() {
     let tmp = tempfile::tempdir().unwrap();

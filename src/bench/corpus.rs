@@ -125,6 +125,11 @@ pub(super) fn run_search(b: &SearchBench) -> Result<()> {
     use shapeseek::ranking::calibrate_with;
     use shapeseek::search::{rank_all, top_k, Query};
     use std::sync::Arc;
+    if b.sizes.contains(&0) || b.queries == 0 || b.top_k == 0 {
+        return Err(Error::InvalidArgument(
+            "--sizes, --queries and --top-k must be at least 1".into(),
+        ));
+    }
     let mut cfg = default_config();
     if let Some(d) = &b.dissimilarity {
         cfg.query.dissimilarity = serde_json::from_value(serde_json::Value::String(d.clone()))

@@ -37,14 +37,11 @@ pub struct IngestArgs {
     /// Mesh files, folders (searched recursively by extension) and CSV manifests.
     #[arg(required = true, value_name = "PATH")]
     pub paths: Vec<PathBuf>,
-    /// The server to send the shapes to.
-    #[arg(
-        long,
-        env = "SHAPESEEK_URL",
-        default_value = "http://127.0.0.1:8080",
-        conflicts_with = "data"
-    )]
-    pub url: String,
+    /// The server to send the shapes to [env: SHAPESEEK_URL] [default: http://127.0.0.1:8080].
+    /// (The variable is read when `--data` is not given: an exported `SHAPESEEK_URL` does not
+    /// make `--data` a conflict.)
+    #[arg(long, conflicts_with = "data")]
+    pub url: Option<String>,
     /// Write straight into this data directory instead (created if missing; no server may be
     /// running on it).
     #[arg(long, value_name = "DIR")]
@@ -185,6 +182,14 @@ pub fn run(args: &IngestArgs) -> Result<bool, CliError> {
         check_tag(t).map_err(|m| CliError::usage(format!("--tag {t:?}: {m}")))?;
     }
     let (items, mut failed) = collect(args)?;
+    if items.is_empty() && failed.is_empty() {
+        let given: Vec<String> = args.paths.iter().map(|p| p.display().to_string()).collect();
+        return Err(CliError::usage(format!(
+            "no mesh files found in {} (files ending in .obj, .gltf, .glb, .ply, .off or .stl, \
+             folders holding such files, or CSV manifests)",
+            given.join(", ")
+        )));
+    }
     // Paths that could not be read count as files; bad manifest rows do not.
     let unread = failed.iter().filter(|f| !is_row(f)).count();
     if let Some(n) = &args.name {
@@ -211,7 +216,10 @@ pub fn run(args: &IngestArgs) -> Result<bool, CliError> {
             (Box::new(l), dir.display().to_string())
         }
         None => {
-            let c = Client::new(&args.url)?;
+            let url = args.url.clone().unwrap_or_else(|| {
+                std::env::var("SHAPESEEK_URL").unwrap_or_else(|_| "http://127.0.0.1:8080".into())
+            });
+            let c = Client::new(&url)?;
             c.ready()?;
             let label = c.base().to_string();
             (Box::new(Remote(c)), label)

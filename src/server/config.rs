@@ -107,6 +107,9 @@ pub struct ServerConfig {
     pub eigenpairs: usize,
 }
 
+/// Most CPU workers a node may be configured with ([`ServerConfig::workers`]).
+pub const MAX_WORKERS: usize = 1024;
+
 impl Default for ServerConfig {
     fn default() -> Self {
         Self {
@@ -212,6 +215,14 @@ impl ServerConfig {
         let bad = |m: &str| Err(Error::InvalidArgument(format!("config: {m}")));
         if self.max_body_bytes == 0 || self.max_vertices == 0 || self.max_faces == 0 {
             return bad("max_body_bytes, max_vertices and max_faces must be > 0");
+        }
+        // Each worker is a thread (two pools of them): 100 000 spent minutes starting threads
+        // before the server listened, and said nothing.
+        if self.workers > MAX_WORKERS {
+            return Err(Error::InvalidArgument(format!(
+                "config: workers must be in 0..={MAX_WORKERS} (0: one per core), got {}",
+                self.workers
+            )));
         }
         if !(self.request_timeout_secs.is_finite() && self.request_timeout_secs > 0.0) {
             return bad("request_timeout_secs must be > 0");

@@ -296,7 +296,17 @@ pub async fn start(cfg: ServerConfig) -> Result<Running> {
 pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Result<Running> {
     cfg.validate()?;
     let grace = Duration::from_secs_f64(cfg.shutdown_grace_secs);
-    let listener = tokio::net::TcpListener::bind(&cfg.addr).await?;
+    let listener = tokio::net::TcpListener::bind(&cfg.addr)
+        .await
+        .map_err(|e| match e.kind() {
+            std::io::ErrorKind::InvalidInput => {
+                crate::Error::InvalidArgument(format!("addr {:?} is not HOST:PORT ({e})", cfg.addr))
+            }
+            kind => crate::Error::Io(std::io::Error::new(
+                kind,
+                format!("cannot listen on {}: {e}", cfg.addr),
+            )),
+        })?;
     let addr = listener.local_addr()?;
     let store = match cfg.store_url() {
         Some(url) => crate::storage::open(url).await?,
