@@ -467,6 +467,54 @@ fn usage_faults_are_refused_plainly() {
     assert!(o.stderr.contains("is not HOST:PORT"), "{}", o.stderr);
 }
 
+/// `ingest --data` analyses as `serve` on that directory would: the config file and the
+/// `SHAPESEEK_*` variables apply (it took the defaults, so under a server run with other
+/// eigenpairs every stored signature was recomputed at the ingest's start, then back by the
+/// next `serve`).
+#[test]
+fn ingest_into_a_data_dir_takes_the_servers_configuration() {
+    let tmp = tempfile::tempdir().unwrap();
+    let files = meshes(&tmp.path().join("m"), 2, 300);
+    let keys = |data: &Path| -> Vec<String> {
+        let store = shapeseek::index::Store::open(data).unwrap();
+        store
+            .all()
+            .unwrap()
+            .into_iter()
+            .map(|(rec, _)| rec.spec_key)
+            .collect()
+    };
+    let d = tmp.path().join("env");
+    let o = Command::new(BIN)
+        .args(["ingest", "--quiet", "--data", s(&d), s(&files[0])])
+        .env("SHAPESEEK_EIGENPAIRS", "60")
+        .env_remove("SHAPESEEK_CONFIG")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let k = keys(&d);
+    assert!(k.len() == 1 && k[0].ends_with("-k60"), "{k:?}");
+    let d = tmp.path().join("file");
+    let cfg = tmp.path().join("server.toml");
+    std::fs::write(&cfg, "eigenpairs = 64\n").unwrap();
+    let o = Command::new(BIN)
+        .args([
+            "ingest",
+            "--quiet",
+            "--data",
+            s(&d),
+            "--config",
+            s(&cfg),
+            s(&files[1]),
+        ])
+        .env_remove("SHAPESEEK_EIGENPAIRS")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let k = keys(&d);
+    assert!(k.len() == 1 && k[0].ends_with("-k64"), "{k:?}");
+}
+
 #[test]
 fn file_errors_name_their_path() {
     let tmp = tempfile::tempdir().unwrap();

@@ -46,6 +46,12 @@ pub struct IngestArgs {
     /// running on it).
     #[arg(long, value_name = "DIR")]
     pub data: Option<PathBuf>,
+    /// With `--data`: the TOML config file of the server that serves that directory [env
+    /// SHAPESEEK_CONFIG]. Its settings and the `SHAPESEEK_*` variables apply as they do to
+    /// `serve` (eigenpairs, limits, ...): shapes are analysed as that server would, and its
+    /// stored signatures are not recomputed for another configuration.
+    #[arg(long, value_name = "FILE", requires = "data")]
+    pub config: Option<PathBuf>,
     /// Display name of the shape (a single file only; default: the manifest's `name` or `id`
     /// column, else the file name without its extension).
     #[arg(long)]
@@ -205,7 +211,7 @@ pub fn run(args: &IngestArgs) -> Result<bool, CliError> {
     let (target, label): (Box<dyn Target>, String) = match &args.data {
         Some(dir) => {
             super::datadir::ensure_writable(dir)?;
-            let l = local::Local::open(dir, args.jobs).map_err(|e| {
+            let l = local::Local::open(dir, args.jobs, args.config.as_deref()).map_err(|e| {
                 let mut e = CliError::from(e);
                 if e.message.contains("in use by another process") {
                     e.message
@@ -593,27 +599,36 @@ mod local {
     }
 
     impl Local {
-        /// Opens (or creates) the index in `dir` with the server's default configuration,
-        /// `jobs` analyses at once.
-        pub fn open(dir: &Path, jobs: usize) -> shapeseek::Result<Local> {
+        /// Opens (or creates) the index in `dir` with the configuration `serve --data dir`
+        /// would have (the config file `config` or `SHAPESEEK_CONFIG`, then the `SHAPESEEK_*`
+        /// variables), `jobs` analyses at once. Before, it took the defaults: under a server
+        /// run with `SHAPESEEK_EIGENPAIRS=60` an ingest recomputed every stored signature at
+        /// its start, and the next `serve` recomputed them all back.
+        pub fn open(dir: &Path, jobs: usize, config: Option<&Path>) -> shapeseek::Result<Local> {
+            let serve = shapeseek::server::ServeArgs {
+                data: Some(dir.to_path_buf()),
+                config: config.map(Path::to_path_buf),
+                ..Default::default()
+            };
+            let defaults = ServerConfig::default();
             let cfg = ServerConfig {
-                data: dir.to_path_buf(),
                 workers: jobs,
                 queue_capacity: jobs,
-                ..ServerConfig::default()
+                // This process writes the sled directory, alone: no cluster settings.
+                store: defaults.store,
+                queue: defaults.queue,
+                shard: defaults.shard,
+                ..serve.to_config()?
             };
+            let mut engine = shapeseek::index::default_engine();
+            engine.analyze.eigen.k = cfg.eigenpairs;
             let rt = tokio::runtime::Builder::new_multi_thread()
                 .worker_threads(2)
                 .enable_all()
                 .build()?;
             let store = rt.block_on(shapeseek::storage::open_dir(dir.to_path_buf()))?;
             let handle = rt.handle().clone();
-            let app = Arc::new(App::load(
-                cfg,
-                shapeseek::index::default_engine(),
-                store,
-                handle,
-            )?);
+            let app = Arc::new(App::load(cfg, engine, store, handle)?);
             Ok(Local { app, rt })
         }
 
