@@ -65,6 +65,19 @@ fn meshes(dir: &Path, count: usize, size: usize) -> Vec<PathBuf> {
     v
 }
 
+/// `GET path` on 127.0.0.1:`port`: the status and body, `None` when nothing answers.
+fn get(port: u16, path: &str) -> Option<(u16, String)> {
+    use std::io::{Read, Write};
+    let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
+    c.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    c.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes())
+        .ok()?;
+    let mut raw = String::new();
+    c.read_to_string(&mut raw).ok()?;
+    let code = raw.split(' ').nth(1)?.parse().ok()?;
+    Some((code, raw))
+}
+
 /// A running `shapeseek serve` on a free port of 127.0.0.1.
 struct Server {
     child: Child,
@@ -90,7 +103,8 @@ impl Server {
         let url = format!("http://127.0.0.1:{port}");
         let t0 = Instant::now();
         loop {
-            if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+            // Ready, not only listening: the port answers 503 while the index loads.
+            if get(port, "/readyz").is_some_and(|(code, _)| code == 200) {
                 break;
             }
             if let Ok(Some(status)) = child.try_wait() {
@@ -513,6 +527,60 @@ fn ingest_into_a_data_dir_takes_the_servers_configuration() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let k = keys(&d);
     assert!(k.len() == 1 && k[0].ends_with("-k64"), "{k:?}");
+}
+
+/// While the index loads (here: every stored signature recomputed for other eigenpairs), the
+/// port answers: `/healthz` 200 and `/readyz` 503 `server.not_ready` with `Retry-After`. Before,
+/// the port was bound and nothing answered until the load ended (a health check hung 8 s on
+/// 30 shapes).
+#[test]
+fn a_loading_server_answers_health_checks() {
+    let tmp = tempfile::tempdir().unwrap();
+    let files = meshes(&tmp.path().join("m"), 12, 3000);
+    let data = tmp.path().join("d");
+    let mut args = vec!["ingest", "--quiet", "--data", s(&data)];
+    args.extend(files.iter().map(|f| s(f)));
+    let o = run(&args);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let port = TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut child = Command::new(BIN)
+        .args([
+            "serve",
+            "--addr",
+            &format!("127.0.0.1:{port}"),
+            "--data",
+            s(&data),
+        ])
+        .env("SHAPESEEK_EIGENPAIRS", "70")
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    let (mut loading, mut ready) = (None, false);
+    while t0.elapsed() < Duration::from_secs(120) && !ready {
+        if let (Some((h, _)), Some((r, body))) = (get(port, "/healthz"), get(port, "/readyz")) {
+            if r == 503 && loading.is_none() {
+                loading = Some((h, body));
+            }
+            ready = r == 200;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(ready, "never ready");
+    let (h, body) = loading.expect("no answer while the index loaded");
+    assert_eq!(h, 200);
+    assert!(
+        body.contains("server.not_ready") && body.to_lowercase().contains("retry-after"),
+        "{body}"
+    );
 }
 
 #[test]

@@ -528,7 +528,14 @@ pub async fn healthz() -> Response {
 /// `GET /readyz`: loaded and not shutting down.
 pub async fn readyz(State(app): AppState) -> Result<Response, ApiError> {
     if app.ready.load(Ordering::Acquire) {
-        let shapes = app.store.count().await.map_err(ApiError::internal)?;
+        // The scan's count, not the store's: sled counts a tree by walking it, and a probe
+        // every few seconds walked every stored shape. The store's only while the scan is
+        // locked for writing (a probe does not wait behind an install).
+        let counted = app.scan.try_read().ok().map(|s| app.corpus_size(&s));
+        let shapes = match counted {
+            Some(n) => n as u64,
+            None => app.store.count().await.map_err(ApiError::internal)?,
+        };
         Ok(Json(serde_json::json!({"status": "ready", "shapes": shapes})).into_response())
     } else {
         Err(ApiError::new(

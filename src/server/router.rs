@@ -308,6 +308,84 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
             )),
         })?;
     let addr = listener.local_addr()?;
+    // The socket answers while the index loads (which can take minutes): `/healthz` 200, every
+    // other path 503 `server.not_ready` with `Retry-After`. Until then the port was bound but
+    // nothing answered, and a health check hung for the whole load. The loaded router takes
+    // over in the same listener once the node is ready.
+    let loaded: Arc<std::sync::OnceLock<Router>> = Arc::default();
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let limits = ConnLimits {
+        max_connections: cfg.max_connections,
+        header_read_timeout: Duration::from_secs_f64(cfg.header_read_timeout_secs),
+        retry_after_secs: cfg.retry_after_secs,
+    };
+    let front = front_router(loaded.clone(), cfg.retry_after_secs);
+    let join = tokio::spawn(async move {
+        super::conn::serve(listener, front, limits, async move {
+            let _ = stopped.await;
+        })
+        .await
+    });
+    // Not the `addr` field: scripts and tests take the log line with it (`listening`, once
+    // ready) as the sign that the node serves.
+    tracing::info!(bound = %addr, "loading the index (503 server.not_ready until it is loaded)");
+    let started = load_and_route(cfg, engine).await;
+    let app = match started {
+        Ok((app, router)) => {
+            let _ = loaded.set(router);
+            app.ready.store(true, Ordering::Release);
+            app
+        }
+        Err(e) => {
+            let _ = stop.send(());
+            let _ = join.await;
+            return Err(e);
+        }
+    };
+    let lifecycle: Arc<dyn Lifecycle> = app;
+    Ok(Running {
+        addr,
+        app: lifecycle,
+        stop,
+        join,
+        grace,
+    })
+}
+
+/// What the listener serves: the loaded router once there is one, else `/healthz` 200 (the
+/// process is alive) and 503 `server.not_ready` (with `Retry-After`) for every other request.
+fn front_router(loaded: Arc<std::sync::OnceLock<Router>>, retry_after: u64) -> Router {
+    use tower::ServiceExt;
+    Router::new().fallback(move |req: Request| {
+        let loaded = loaded.clone();
+        async move {
+            if let Some(r) = loaded.get() {
+                return match r.clone().oneshot(req).await {
+                    Ok(resp) => resp,
+                    Err(never) => match never {},
+                };
+            }
+            if req.uri().path() == "/healthz" {
+                return axum::Json(serde_json::json!({"status": "ok"})).into_response();
+            }
+            ApiError {
+                retry_after: Some(retry_after),
+                ..ApiError::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    "server.not_ready",
+                    "not ready: the index is loading",
+                )
+            }
+            .into_response()
+        }
+    })
+}
+
+/// Opens the store (and the cluster), loads the index and builds its router.
+async fn load_and_route(
+    cfg: ServerConfig,
+    engine: crate::index::Engine,
+) -> Result<(Arc<App>, Router)> {
     let store = match cfg.store_url() {
         Some(url) => crate::storage::open(url).await?,
         None => {
@@ -330,27 +408,7 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
         app.start_shard_responder().await?;
     }
     let router = router(app.clone());
-    app.ready.store(true, Ordering::Release);
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let limits = ConnLimits {
-        max_connections: app.cfg.max_connections,
-        header_read_timeout: Duration::from_secs_f64(app.cfg.header_read_timeout_secs),
-        retry_after_secs: app.cfg.retry_after_secs,
-    };
-    let join = tokio::spawn(async move {
-        super::conn::serve(listener, router, limits, async move {
-            let _ = stopped.await;
-        })
-        .await
-    });
-    let lifecycle: Arc<dyn Lifecycle> = app;
-    Ok(Running {
-        addr,
-        app: lifecycle,
-        stop,
-        join,
-        grace,
-    })
+    Ok((app, router))
 }
 
 #[cfg(test)]
