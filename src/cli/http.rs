@@ -8,7 +8,8 @@ use std::time::Duration;
 /// The largest response body read (search answers and records are small).
 const MAX_RESPONSE: u64 = 64 << 20;
 
-/// How often a `503 server.busy` is retried before it counts as a failure.
+/// How often a `503 server.busy` or `server.not_ready` (an index loading) is retried, after its
+/// `Retry-After`, before it counts as a failure.
 const BUSY_RETRIES: u32 = 30;
 
 /// A failed request: the server's problem code and detail, or the client's own.
@@ -155,7 +156,10 @@ impl Client {
                 .as_str()
                 .map(str::to_string)
                 .unwrap_or_else(|| format!("http.{status}"));
-            if status == 503 && code == "server.busy" && attempt < BUSY_RETRIES {
+            // Busy, or still loading its index (it answers 503 `server.not_ready` meanwhile):
+            // wait as it says and ask again.
+            let transient = code == "server.busy" || code == "server.not_ready";
+            if status == 503 && transient && attempt < BUSY_RETRIES {
                 attempt += 1;
                 std::thread::sleep(Duration::from_secs(retry_after.unwrap_or(1).clamp(1, 30)));
                 continue;
