@@ -235,21 +235,13 @@ impl App {
                     }
                 }
             };
-            // Only while the store still holds it (a delete may have been applied since
-            // it was read: `App::writes`).
-            let _writes = app.writes.blocking_lock();
-            match app.block(app.store.get(&id)) {
-                Ok(Some(_)) => {}
-                Ok(None) => return None, // deleted meanwhile
-                Err(e) => {
-                    tracing::warn!(id = %id, error = %e, "could not read the shape again; skipped");
-                    return None;
-                }
-            }
-            let mut scan = app.scan.write().unwrap_or_else(|p| p.into_inner());
-            let first = scan.calibration().is_none();
-            scan.insert(&app.engine, &id, &rec.name, &rec.tags, &sig, 1);
-            Some(first)
+            // Not when its delete was applied since it was read (`src/server/writes.rs`).
+            let mut first = false;
+            let entered = app.enter_scan(&id, |scan| {
+                first = scan.calibration().is_none();
+                scan.insert(&app.engine, &id, &rec.name, &rec.tags, &sig, 1);
+            });
+            entered.then_some(first)
         })
         .await
         .map_err(ApiError::internal)?;
@@ -271,18 +263,7 @@ impl App {
         if self.foreign_change(id).await? {
             return Ok(());
         }
-        let app = self.clone();
-        let id = id.to_string();
-        let writes = self.writes.clone().lock_owned().await;
-        let removed = tokio::task::spawn_blocking(move || {
-            let _writes = writes;
-            app.scan
-                .write()
-                .unwrap_or_else(|p| p.into_inner())
-                .remove(&id)
-        })
-        .await
-        .map_err(ApiError::internal)?;
+        let (_, removed) = self.remove_shape(id, false).await?;
         if removed {
             self.after_change();
         }

@@ -80,7 +80,7 @@ impl App {
             ready: AtomicBool::new(false),
             recalibrating: AtomicBool::new(false),
             adopting: Arc::new(tokio::sync::Mutex::new(())),
-            writes: Arc::new(tokio::sync::Mutex::new(())),
+            writes: Arc::default(),
             metrics: m::handle(),
             cluster: None,
         };

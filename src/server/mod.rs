@@ -16,7 +16,8 @@
 //! Connections are served by [`conn::serve`] (a connection cap, a header-read timeout,
 //! problem+json for hyper's own error answers). Layers (outside in): request-id sanitiser →
 //! request id → trace → metrics → panic → problem+json catch-all → body
-//! admission ([`limits::admit_body`]: announced size, in-flight byte budget, read deadline) →
+//! admission ([`limits::admit_body`]: announced size, in-flight byte budget taken as bytes
+//! arrive, read deadline) →
 //! body limit → per-request timeout (on `/v1`, 503 `request.timeout` + `Retry-After`) →
 //! handlers. Every CPU job (ingest, the analysis of an uploaded query, a search with its rerank
 //! stages) is admitted by [`admission::Admission`] with an estimated cost: cheap and heavy
@@ -45,6 +46,7 @@ mod state_tests;
 #[cfg(test)]
 mod test_support;
 pub mod web;
+mod writes;
 
 pub use config::{MigrateArgs, ServeArgs, ServerConfig};
 pub use router::{start, start_with, Running};

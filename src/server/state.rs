@@ -43,11 +43,10 @@ pub struct App {
     /// Held while a stored calibration is installed ([`App::adopt_stored_calibration`]): one
     /// install at a time, the others then find it done.
     pub(super) adopting: Arc<tokio::sync::Mutex<()>>,
-    /// Held while a shape enters the scan after the store has it, and while a delete removes
-    /// one from the store and then from the scan: a shape enters only while the store still
-    /// holds it, so a delete that races its ingest (or the change feed's insert) cannot leave
-    /// it in the scan, searchable, after the store lost it.
-    pub(super) writes: Arc<tokio::sync::Mutex<()>>,
+    /// Held while a stored shape enters the scan, and while a delete removes one from the
+    /// store and then from the scan; it holds the tombstones of shapes deleted before they
+    /// entered (`src/server/writes.rs`).
+    pub(super) writes: Arc<tokio::sync::Mutex<super::writes::Tombstones>>,
     /// Metrics handle.
     pub metrics: Option<metrics_exporter_prometheus::PrometheusHandle>,
     /// The work queue and change feed, when this node is one of a cluster.
@@ -382,15 +381,11 @@ impl App {
             }
             InsertOutcome::Inserted(id) => id,
         };
-        {
-            // A delete of this id may have reached the store since the insert (ids are
-            // sequential and can be guessed): then the shape does not enter the scan.
-            let _writes = self.writes.blocking_lock();
-            if self.block(self.store.get(&id)).map_err(storage)?.is_some() {
-                let mut scan = self.scan.write().unwrap_or_else(|p| p.into_inner());
-                scan.insert(&self.engine, &id, &record.name, &record.tags, &sig, 1);
-            }
-        }
+        // Not when a delete of this id reached the store since the insert (ids are
+        // sequential and can be guessed).
+        self.enter_scan(&id, |scan| {
+            scan.insert(&self.engine, &id, &record.name, &record.tags, &sig, 1)
+        });
         t.store_ms = ms(t3);
         t.total_ms = ms(t0);
         for (stage, v) in [
@@ -416,20 +411,7 @@ impl App {
 
     /// Deletes a shape. False when absent.
     pub async fn delete(self: &Arc<Self>, id: String) -> Result<bool, ApiError> {
-        let writes = self.writes.clone().lock_owned().await;
-        let removed = self.store.delete(&id).await.map_err(storage)?;
-        let app = self.clone();
-        let held = id.clone();
-        // The scan's write lock may wait for a running search: not on an async worker.
-        tokio::task::spawn_blocking(move || {
-            let _writes = writes;
-            app.scan
-                .write()
-                .unwrap_or_else(|p| p.into_inner())
-                .remove(&held);
-        })
-        .await
-        .map_err(ApiError::internal)?;
+        let (removed, _) = self.remove_shape(&id, true).await?;
         if removed {
             self.announce(crate::queue::Change::Delete { id }).await;
             self.after_change();
