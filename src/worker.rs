@@ -14,8 +14,9 @@
 //!    its count starts again;
 //! 2. the same bytes stored already → mark done, announce, ack (a redelivery after a worker
 //!    died between the insert and the ack ends here);
-//! 3. analyse on a blocking thread, stopped at the serving nodes' `request_timeout_secs` (as a
-//!    node stops an upload's analysis; a failure to retry), sending "in progress" to JetStream
+//! 3. analyse on a blocking thread, stopped at `request_timeout_secs` (the limit a serving
+//!    node puts on an upload's analysis; past it a dead letter, 503 `job.timeout`: another
+//!    try would take as long), sending "in progress" to JetStream
 //!    and marking the job as seen in PostgreSQL every third of `ack_wait` (so the sweep does
 //!    not republish a job that is being analysed); free the slot;
 //! 4. insert under the job's id (idempotent by content hash), mark done, announce, ack;
@@ -104,6 +105,15 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
     }
 }
 
+/// The dead letter of a job tried too often.
+fn exhausted(message: String) -> DeadLetter {
+    DeadLetter {
+        status: 503,
+        code: "job.retries_exhausted".into(),
+        message,
+    }
+}
+
 /// How a handled job ended.
 enum Outcome {
     Ack,
@@ -180,11 +190,7 @@ impl Worker {
             Outcome::Ack => msg.ack().await,
             Outcome::Retry(why) if delivered >= self.bus.options().max_deliver => {
                 tracing::error!(id, delivered, error = %why, "job failed on every delivery; dead letter");
-                let dead = DeadLetter {
-                    status: 503,
-                    code: "job.retries_exhausted".into(),
-                    message: format!("failed {delivered} times; last error: {why}"),
-                };
+                let dead = exhausted(format!("failed {delivered} times; last error: {why}"));
                 if let Err(e) = self.jobs.fail(&id, &dead).await {
                     tracing::error!(error = %e, id, "could not record the dead letter");
                 }
@@ -216,6 +222,10 @@ impl Worker {
         if input.state != JobState::Pending {
             return Ok(Outcome::Ack);
         }
+        if let Some(existing) = self.store.id_for_hash(&input.sha256).await? {
+            self.finish(id, &existing).await?;
+            return Ok(Outcome::Ack);
+        }
         let max_deliver = self.bus.options().max_deliver;
         if i64::from(input.attempts) > max_deliver {
             tracing::error!(
@@ -223,20 +233,12 @@ impl Worker {
                 attempts = input.attempts,
                 "job claimed on every delivery and never finished; dead letter"
             );
-            let dead = DeadLetter {
-                status: 503,
-                code: "job.retries_exhausted".into(),
-                message: format!(
-                    "claimed {} times (more than max_deliver = {max_deliver}) without finishing: \
-                     its workers stopped on it",
-                    input.attempts
-                ),
-            };
+            let dead = exhausted(format!(
+                "claimed {} times (more than max_deliver = {max_deliver}) without finishing: its \
+                 workers stopped on it",
+                input.attempts
+            ));
             self.jobs.fail(id, &dead).await?;
-            return Ok(Outcome::Ack);
-        }
-        if let Some(existing) = self.store.id_for_hash(&input.sha256).await? {
-            self.finish(id, &existing).await?;
             return Ok(Outcome::Ack);
         }
         let Some(bytes) = input.upload.clone() else {
@@ -272,6 +274,20 @@ impl Worker {
                     message: e.detail.clone(),
                 };
                 tracing::info!(id, code = %e.code, "input refused; dead letter");
+                self.jobs.fail(id, &dead).await?;
+                return Ok(Outcome::Ack);
+            }
+            // The deadline: another try would take as long (a re-upload tries again).
+            Err(e) if e.code == "request.timeout" => {
+                let dead = DeadLetter {
+                    status: 503,
+                    code: "job.timeout".into(),
+                    message: format!(
+                        "the analysis took longer than request_timeout_secs = {} s and was stopped",
+                        self.cfg.request_timeout_secs
+                    ),
+                };
+                tracing::warn!(id, "analysis past its deadline; dead letter");
                 self.jobs.fail(id, &dead).await?;
                 return Ok(Outcome::Ack);
             }

@@ -817,12 +817,6 @@ fn two_nodes_two_workers_survive_kills_and_rank_as_one_sled_node() {
     eprintln!("cluster: {n} searches equal on both nodes and on a single sled node");
 }
 
-/// A rolling upgrade to a release with another spec (here another eigenpair count, which the
-/// spec key holds): a new node never mixes into its scan the signatures that an old node's
-/// worker stores. It recomputes each one from the stored original and stores it under its own
-/// spec, so a search by upload on the new node finds each shape at distance exactly 0 (the
-/// upload's signature and the stored one are the same computation); a stale signature would not
-/// be at 0.
 /// A job whose workers died on it (an input that aborts the process: no nak, no term) is
 /// delivered `max_deliver` times by JetStream, then republished by the workers' sweep as a new
 /// message whose delivery count starts again: before the claim count was checked, forever,
@@ -890,6 +884,12 @@ fn a_job_claimed_past_max_deliver_is_a_dead_letter() {
     }
 }
 
+/// A rolling upgrade to a release with another spec (here another eigenpair count, which the
+/// spec key holds): a new node never mixes into its scan the signatures that an old node's
+/// worker stores. It recomputes each one from the stored original and stores it under its own
+/// spec, so a search by upload on the new node finds each shape at distance exactly 0 (the
+/// upload's signature and the stored one are the same computation); a stale signature would not
+/// be at 0.
 #[test]
 fn a_node_of_another_spec_recomputes_the_signatures_it_applies() {
     let Some(engines) = Engines::start("upgrade", false) else {
