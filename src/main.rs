@@ -288,11 +288,16 @@ fn main() -> ExitCode {
             .with_writer(std::io::stderr)
             .init();
     }
-    if !matches!(cli.command, Command::Serve(_) | Command::Worker(_)) {
+    let pg = matches!(
+        cli.command,
+        Command::Serve(_) | Command::Worker(_) | Command::Migrate(_) | Command::Bench(_)
+    );
+    if !pg {
         // A command whose output goes to a pipe that closes (`shapeseek spectrum … | head`)
         // ends as other command-line tools do, by SIGPIPE, instead of panicking on the
-        // failed print (Rust ignores SIGPIPE by default). Sockets are not concerned: the
-        // standard library sends with MSG_NOSIGNAL. The servers keep ignoring it.
+        // failed print (Rust ignores SIGPIPE by default). TCP sockets are not concerned (the
+        // standard library sends with MSG_NOSIGNAL); the commands that may reach PostgreSQL
+        // over a Unix socket (written with `write`, which raises it) keep ignoring it.
         // SAFETY: resetting a signal's disposition at start-up, before any thread is spawned.
         unsafe {
             libc::signal(libc::SIGPIPE, libc::SIG_DFL);

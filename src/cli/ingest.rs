@@ -223,7 +223,10 @@ pub fn run(args: &IngestArgs) -> Result<bool, CliError> {
         }
         None => {
             let url = args.url.clone().unwrap_or_else(|| {
-                std::env::var("SHAPESEEK_URL").unwrap_or_else(|_| "http://127.0.0.1:8080".into())
+                std::env::var("SHAPESEEK_URL")
+                    .ok()
+                    .filter(|u| !u.is_empty())
+                    .unwrap_or_else(|| "http://127.0.0.1:8080".into())
             });
             let c = Client::new(&url)?;
             c.ready()?;

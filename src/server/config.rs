@@ -57,9 +57,9 @@ pub struct ServerConfig {
     /// Seconds a client has to send a whole request body once its head arrived (408
     /// `request.body_timeout` past it).
     pub body_read_timeout_secs: f64,
-    /// Request body bytes held in memory at once over all connections; a body that does not
-    /// fit (its `Content-Length`, or `max_body_bytes` when unannounced) gets 503 `server.busy`.
-    /// At least `max_body_bytes`.
+    /// Request body bytes held in memory at once over all connections, each body counted as
+    /// it arrives (in 64 KiB steps); a body that does not fit gets 503 `server.busy`. At least
+    /// `max_body_bytes`.
     pub max_inflight_body_bytes: usize,
     /// CPU jobs (analysis + signature) run at once; 0 = number of cores.
     pub workers: usize,

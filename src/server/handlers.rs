@@ -538,10 +538,9 @@ pub async fn readyz(State(app): AppState) -> Result<Response, ApiError> {
         };
         Ok(Json(serde_json::json!({"status": "ready", "shapes": shapes})).into_response())
     } else {
-        Err(ApiError::new(
-            StatusCode::SERVICE_UNAVAILABLE,
-            "server.not_ready",
+        Err(ApiError::not_ready(
             "not ready (starting or shutting down)",
+            app.cfg.retry_after_secs,
         ))
     }
 }

@@ -152,7 +152,9 @@ pub async fn admit_body(
         e.detail = "too many request bodies in flight; retry later".into();
         e
     };
-    let first = declared.map_or(RESERVE_STEP, |n| (n as usize).min(RESERVE_STEP));
+    let first = declared
+        .map_or(gate.max_body_bytes, |n| n as usize)
+        .min(RESERVE_STEP);
     let Ok(mut permit) = gate.budget_kib.clone().try_acquire_many_owned(kib(first)) else {
         return busy().into_response();
     };

@@ -91,6 +91,14 @@ impl ApiError {
         }
     }
 
+    /// 503 `server.not_ready` with `Retry-After` (loading its index, or shutting down).
+    pub fn not_ready(detail: &str, retry_after: u64) -> Self {
+        Self {
+            retry_after: Some(retry_after),
+            ..Self::new(StatusCode::SERVICE_UNAVAILABLE, "server.not_ready", detail)
+        }
+    }
+
     /// 500 `server.internal` (details are logged, not sent).
     pub fn internal(detail: impl std::fmt::Display) -> Self {
         tracing::error!(error = %detail, "internal error");

@@ -292,7 +292,8 @@ pub async fn start(cfg: ServerConfig) -> Result<Running> {
     start_with(cfg, engine).await
 }
 
-/// Loads the index (on a blocking thread), binds `cfg.addr` and serves in the background.
+/// Binds `cfg.addr`, answers there while the index loads (on a blocking thread; `/healthz` 200,
+/// else 503 `server.not_ready`), then serves the API in the background; returns once ready.
 pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Result<Running> {
     cfg.validate()?;
     let grace = Duration::from_secs_f64(cfg.shutdown_grace_secs);
@@ -338,7 +339,7 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
         }
         Err(e) => {
             let _ = stop.send(());
-            let _ = join.await;
+            let _ = tokio::time::timeout(grace, join).await;
             return Err(e);
         }
     };
@@ -365,18 +366,14 @@ fn front_router(loaded: Arc<std::sync::OnceLock<Router>>, retry_after: u64) -> R
                     Err(never) => match never {},
                 };
             }
-            if req.uri().path() == "/healthz" {
+            let read = matches!(
+                *req.method(),
+                axum::http::Method::GET | axum::http::Method::HEAD
+            );
+            if req.uri().path() == "/healthz" && read {
                 return axum::Json(serde_json::json!({"status": "ok"})).into_response();
             }
-            ApiError {
-                retry_after: Some(retry_after),
-                ..ApiError::new(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    "server.not_ready",
-                    "not ready: the index is loading",
-                )
-            }
-            .into_response()
+            ApiError::not_ready("not ready: the index is loading", retry_after).into_response()
         }
     })
 }

@@ -10,10 +10,10 @@ use async_trait::async_trait;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
-/// The wrapped store and the switches.
 /// A test's hook, called with a shape's id.
 pub(crate) type IdHook = Arc<dyn Fn(&str) + Send + Sync>;
 
+/// The wrapped store and the switches.
 pub(crate) struct Faulty {
     inner: Arc<dyn ShapeStore>,
     /// Calibration commits fail (the lock is released, nothing written).
