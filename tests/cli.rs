@@ -479,6 +479,37 @@ fn usage_faults_are_refused_plainly() {
     ]);
     assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
     assert!(o.stderr.contains("is not HOST:PORT"), "{}", o.stderr);
+    // Output paths that cannot be written are refused before the evaluation, naming the path
+    // (`--out` a file: it evaluated every shape, then said `File exists (os error 17)`).
+    let manifest = tmp.path().join("manifest.csv");
+    std::fs::write(&manifest, "id,path,class,transform,strength,source_pose\n").unwrap();
+    let o = run(&[
+        "eval",
+        "--manifest",
+        s(&manifest),
+        "--out",
+        s(&manifest),
+        "--no-cache",
+    ]);
+    assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
+    assert!(
+        o.stderr.contains(&format!(
+            "--out {}: exists and is not a folder",
+            s(&manifest)
+        )),
+        "{}",
+        o.stderr
+    );
+    let o = run(&[
+        "eval",
+        "--manifest",
+        s(&manifest),
+        "--json",
+        s(tmp.path()),
+        "--no-cache",
+    ]);
+    assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("is a folder"), "{}", o.stderr);
 }
 
 /// `ingest --data` analyses as `serve` on that directory would: the config file and the

@@ -172,13 +172,51 @@ impl EvalArgs {
 /// Runs `shapeseek eval`: evaluates, prints the Markdown summary and stage times to stdout and
 /// writes the requested files.
 pub fn run(args: &EvalArgs) -> Result<()> {
-    let out = evaluate(&args.options()?)?;
+    let opts = args.options()?;
+    check_outputs(args)?;
+    let out = evaluate(&opts)?;
     print!("{}", out.markdown);
     if args.per_strength {
         println!(
             "\n## mAP per strength (%)\n\n{}",
             report::per_strength_table(&out.results)
         );
+    }
+    Ok(())
+}
+
+/// Refuses, before any work, output paths that cannot be written: a folder (`--out`,
+/// `--cache`) that is a file, a file (`--json`, `--matrices`) that is a folder, or a parent
+/// folder that cannot be created. (They were found only after the whole evaluation, hours on
+/// a large manifest without a cache, with an error that named no path.)
+fn check_outputs(args: &EvalArgs) -> Result<()> {
+    let bad = |flag: &str, p: &std::path::Path, why: &str| {
+        Err(Error::InvalidArgument(format!(
+            "{flag} {}: {why}",
+            p.display()
+        )))
+    };
+    for (flag, dir) in [("--out", &args.out), ("--cache", &args.cache)] {
+        if let Some(d) = dir {
+            if d.exists() && !d.is_dir() {
+                return bad(flag, d, "exists and is not a folder");
+            }
+            if let Err(e) = std::fs::create_dir_all(d) {
+                return bad(flag, d, &format!("cannot create it ({e})"));
+            }
+        }
+    }
+    for (flag, file) in [("--json", &args.json), ("--matrices", &args.matrices)] {
+        if let Some(f) = file {
+            if f.is_dir() {
+                return bad(flag, f, "is a folder; give a file name");
+            }
+            if let Some(parent) = f.parent().filter(|p| !p.as_os_str().is_empty()) {
+                if let Err(e) = std::fs::create_dir_all(parent) {
+                    return bad(flag, f, &format!("cannot create its folder ({e})"));
+                }
+            }
+        }
     }
     Ok(())
 }
