@@ -288,11 +288,11 @@ fn main() -> ExitCode {
             .with_writer(std::io::stderr)
             .init();
     }
-    let pg = matches!(
+    let keeps_ignoring = matches!(
         cli.command,
         Command::Serve(_) | Command::Worker(_) | Command::Migrate(_) | Command::Bench(_)
     );
-    if !pg {
+    if !keeps_ignoring {
         // A command whose output goes to a pipe that closes (`shapeseek spectrum … | head`)
         // ends as other command-line tools do, by SIGPIPE, instead of panicking on the
         // failed print (Rust ignores SIGPIPE by default). TCP sockets are not concerned (the

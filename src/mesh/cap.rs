@@ -55,7 +55,8 @@
 //! A cap as above has about `m² / 4π` vertices: as many as the mesh has around a hole of
 //! ordinary size (at most 0.63 of the mesh's vertices on `bench/dev`, `face-cut2`), but a loop
 //! sampled much more finely than the rest of the mesh — a cup of 4 001 vertices whose rim has
-//! 2 000 — would get 400 000, and a rim of 8 000 vertices several GB and minutes of edge flips.
+//! 2 000 — got 361 409 (this module's test, before the bound), and a rim of 8 000 vertices
+//! several GB and over a minute of edge flips (an outside review's upload).
 //! So the caps of one mesh add at most [`cap_budget`] vertices (as many as the mesh has, at
 //! least [`MIN_CAP_BUDGET`]). A loop whose cap would not fit what is left of it gets a
 //! coarser cap of the same dome: `R f` rings of `max(3, round(m s_r f))` vertices, `f` the
@@ -983,11 +984,11 @@ mod tests {
         Mesh::new(v, f)
     }
 
-    /// The design's cap of a rim of `m` vertices has about `m² / 4π`: 400 000 for a cup of
-    /// 4 001 vertices whose rim has 2 000 (measured before the budget: 23.7 s and 2 GB in the
-    /// server for one upload). Now the caps add at most [`cap_budget`] vertices, here with a
-    /// coarser cap that still closes the cup without slivers; a rim as finely sampled as the
-    /// cut sphere's keeps the design's cap.
+    /// The design's cap of a rim of `m` vertices has about `m² / 4π`: for a cup of 4 001
+    /// vertices whose rim has 2 000, 361 409 vertices before the budget (this test's failure
+    /// then; the review's upload of such a cup took 23.7 s and 2 GB in the server). Now the
+    /// caps add at most [`cap_budget`] vertices, here with a coarser cap that still closes the
+    /// cup without slivers; a rim as finely sampled as the rest keeps the design's cap.
     #[test]
     fn a_finely_sampled_rim_gets_a_coarser_cap_within_the_budget() {
         let m = cup(2000);

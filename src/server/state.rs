@@ -265,19 +265,24 @@ impl App {
     }
 
     /// The stored re-ranking payload of a shape (`None` when it has none).
-    pub(super) fn stored_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
-        match self.block(self.store.payload(id)).map_err(storage)? {
+    async fn read_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
+        match self.store.payload(id).await.map_err(storage)? {
             None => Ok(None),
             Some(b) => decode_payload(id, &b).map(Some),
         }
+    }
+
+    /// [`App::read_payload`] from a blocking thread.
+    pub(super) fn stored_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
+        self.block(self.read_payload(id))
     }
 
     /// The stored payload of the query `id`, for a search whose stage compares payloads: 404
     /// when the shape is gone (a delete that has reached the store and not yet the scan),
     /// 409 `shape.no_payload` when it is stored without one.
     pub(super) async fn query_payload(&self, id: &str) -> Result<GwPayload, ApiError> {
-        match self.store.payload(id).await.map_err(storage)? {
-            Some(b) => decode_payload(id, &b),
+        match self.read_payload(id).await? {
+            Some(p) => Ok(p),
             None if self.store.get(id).await.map_err(storage)?.is_none() => {
                 Err(ApiError::not_found(id))
             }
