@@ -1166,6 +1166,19 @@ fn bad_input_is_problem_json() {
     .problem(400, "request.invalid");
     get(a, "/v1/shapes?limit=abc").problem(400, "request.invalid");
     get(a, "/v1/shapes?limit=0").problem(400, "request.invalid");
+    // A misspelt query parameter is refused with the names accepted (`?tags=` on the listing
+    // was ignored, and every shape listed as if it had matched the filter).
+    for (method, path) in [
+        ("GET", "/v1/shapes?tags=chair"),
+        ("POST", "/v1/shapes?tag=chair"),
+        ("POST", "/v1/search?topk=3"),
+    ] {
+        let p =
+            http(a, method, path, Some("model/obj"), b"v 0 0 0\n").problem(400, "request.invalid");
+        let detail = p["detail"].as_str().unwrap_or_default();
+        assert!(detail.contains("unknown field"), "{path}: {detail}");
+        assert!(detail.contains("expected one of"), "{path}: {detail}");
+    }
     get(a, "/nope").problem(404, "route.not_found");
     http(a, "PUT", "/v1/search", None, b"").problem(405, "request.method_not_allowed");
     // Nothing was stored, and the server still answers.

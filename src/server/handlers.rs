@@ -15,8 +15,11 @@ use std::sync::Arc;
 
 type AppState = State<Arc<App>>;
 
-/// Query parameters of a raw `POST /v1/shapes`.
+/// Query parameters of `POST /v1/shapes`. A parameter of another name is refused (400) with
+/// the names accepted, as for every query below: `?tag=` here, or `?tags=` on the listing,
+/// used to be ignored, and the request did something else than asked.
 #[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct IngestParams {
     /// Format name or MIME type (overrides Content-Type as a hint; content still wins).
     pub format: Option<String>,
@@ -29,8 +32,9 @@ pub struct IngestParams {
     pub wait: Option<bool>,
 }
 
-/// Query parameters of a raw `POST /v1/search`.
+/// Query parameters of `POST /v1/search` (unknown names refused).
 #[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SearchParams {
     /// Format name or MIME type.
     pub format: Option<String>,
@@ -271,8 +275,9 @@ pub async fn get_job(State(app): AppState, Path(id): Path<String>) -> Result<Res
     }
 }
 
-/// Query parameters of `GET /v1/shapes`.
+/// Query parameters of `GET /v1/shapes` (unknown names refused).
 #[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ListParams {
     /// Page size, 1..=1000 (default 50).
     pub limit: Option<usize>,
@@ -481,6 +486,14 @@ pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
         "default_query": serde_json::to_value(app.engine.default_query()).map_err(ApiError::internal)?,
         "size_on_disk": app.store.size_on_disk().await.map_err(ApiError::internal)?,
         "queue": queue_stats(&app),
+        // What an upload may be: a client checks a file against these before sending it (a
+        // body over `max_body_bytes` is cut off mid-send, which a client sees as a broken
+        // connection, not as the 413 the server answers).
+        "limits": {
+            "max_body_bytes": app.cfg.max_body_bytes,
+            "max_vertices": app.cfg.max_vertices,
+            "max_faces": app.cfg.max_faces,
+        },
     });
     if let Some(sh) = app.shard() {
         // A sharded node: `shapes` are its shard's, `calibrated_on` counts the whole corpus.
