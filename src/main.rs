@@ -315,7 +315,12 @@ fn main() -> ExitCode {
         },
         Command::Search(a) => cli::search::run(a),
         Command::Migrate(a) => run_migrate(a),
-        Command::Eval(a) => cli::eval::run(a).map_err(CliError::from),
+        Command::Eval(a) => match cli::eval::run(a) {
+            Ok(true) => Ok(()),
+            // Shapes were left out (listed in the report and on stderr).
+            Ok(false) => return ExitCode::from(1),
+            Err(e) => Err(CliError::from(e)),
+        },
         Command::Bench(a) => bench::run(a).map_err(CliError::from),
         Command::Samples(a) => shapeseek::mesh::samples::write_samples(&a.out)
             .map(|s| {

@@ -86,6 +86,11 @@ struct Server {
 
 impl Server {
     fn start(data: &Path) -> Server {
+        Server::start_with(data, &[])
+    }
+
+    /// A server with these environment variables (`SHAPESEEK_*` settings).
+    fn start_with(data: &Path, env: &[(&str, &str)]) -> Server {
         let port = TcpListener::bind("127.0.0.1:0")
             .unwrap()
             .local_addr()
@@ -96,6 +101,7 @@ impl Server {
             .arg(data)
             .env("SHAPESEEK_LOG_FORMAT", "text")
             .env("RUST_LOG", "warn")
+            .envs(env.iter().copied())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
             .spawn()
@@ -250,16 +256,18 @@ fn ingest_to_a_server_and_search() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("meshes");
     let files = meshes(&dir, 6, 500);
-    // A manifest over the same files: names from `id`, tags from the other columns.
-    let mut csv = String::from("id,path,class,transform\n");
+    // A manifest over the same files: names from `id`, tags from the other columns (one with
+    // a comma: the server split it in two, and `--data` did not).
+    let mut csv = String::from("id,path,class,transform,pose\n");
     for (i, f) in files.iter().enumerate() {
         let class = if i % 2 == 0 { "even" } else { "odd" };
+        let pose = if i == 0 { "\"sitting, arms up\"" } else { "" };
         csv.push_str(&format!(
-            "shape-{i},meshes/{},{class},null\n",
+            "shape-{i},meshes/{},{class},null,{pose}\n",
             f.file_name().unwrap().to_string_lossy()
         ));
     }
-    csv.push_str("shape-x,meshes/missing.off,odd,null\n");
+    csv.push_str("shape-x,meshes/missing.off,odd,null,\n");
     let manifest = tmp.path().join("manifest.csv");
     std::fs::write(&manifest, csv).unwrap();
 
@@ -362,7 +370,114 @@ fn ingest_to_a_server_and_search() {
     let local = tmp.path().join("local-data");
     let o = run(&["ingest", "--data", s(&local), "--quiet", s(&manifest)]);
     assert_eq!(o.code, 1, "{}", o.stderr);
-    assert_eq!(index_contents(&local), index_contents(&server_data));
+    let stored = index_contents(&server_data);
+    assert!(
+        stored
+            .values()
+            .any(|(_, tags, _)| tags.contains(&"pose=sitting, arms up".to_string())),
+        "{:?}",
+        stored.values().map(|(_, tags, _)| tags).collect::<Vec<_>>()
+    );
+    assert_eq!(index_contents(&local), stored);
+}
+
+/// Through a server, a file over its `max_body_bytes` is listed as `limit.bytes` without being
+/// sent (the server cut the connection mid-send and the file was listed as "cannot reach");
+/// a server that stops answering ends the run with status 69 and a count of the files not
+/// sent (every remaining file was tried, and listed as a failure of its own).
+#[test]
+fn ingest_to_a_server_checks_its_body_limit_and_stops_when_it_is_gone() {
+    let tmp = tempfile::tempdir().unwrap();
+    let small = meshes(&tmp.path().join("small"), 3, 300);
+    let big = meshes(&tmp.path().join("big"), 1, 20_000);
+    let limit = 200_000;
+    assert!(std::fs::metadata(&big[0]).unwrap().len() > limit);
+    assert!(small
+        .iter()
+        .all(|f| std::fs::metadata(f).unwrap().len() < limit / 2));
+    let data = tmp.path().join("data");
+    let server = Server::start_with(&data, &[("SHAPESEEK_MAX_BODY_BYTES", "200000")]);
+    let mut args = vec!["ingest", "--url", &server.url, "--json", "--jobs", "1"];
+    args.extend(small.iter().chain(&big).map(|p| s(p)));
+    let o = run(&args);
+    assert_eq!(o.code, 1, "{}\n{}", o.stdout, o.stderr);
+    let v = o.json();
+    assert_eq!(v["created"], 3, "{v}");
+    let failed = v["failed"].as_array().unwrap();
+    assert_eq!(failed.len(), 1, "{v}");
+    assert_eq!(failed[0]["path"], s(&big[0]), "{v}");
+    assert_eq!(failed[0]["code"], "limit.bytes", "{v}");
+    assert!(
+        failed[0]["detail"]
+            .as_str()
+            .unwrap()
+            .contains("up to 200000 bytes"),
+        "{v}"
+    );
+    assert_eq!(v["not_sent"], 0, "{v}");
+    server.stop();
+
+    // A server that answers its first requests, then is gone.
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let fake = std::thread::spawn(move || {
+        use std::io::{Read, Write};
+        let answers = [
+            "{\"status\":\"ready\",\"shapes\":0}",
+            "{\"shapes\":0}",
+            "{\"id\":\"0000000000000001\"}",
+        ];
+        for (i, body) in answers.iter().enumerate() {
+            let (mut c, _) = listener.accept().unwrap();
+            let mut buf = vec![0u8; 1 << 16];
+            let mut got = Vec::new();
+            // Read the head and, for the upload, its whole body.
+            loop {
+                let n = c.read(&mut buf).unwrap();
+                got.extend_from_slice(&buf[..n]);
+                let text = String::from_utf8_lossy(&got).to_string();
+                if let Some(end) = text.find("\r\n\r\n") {
+                    let len: usize = text
+                        .lines()
+                        .find_map(|l| {
+                            l.to_ascii_lowercase()
+                                .strip_prefix("content-length:")
+                                .map(|v| v.trim().parse().unwrap())
+                        })
+                        .unwrap_or(0);
+                    if got.len() >= end + 4 + len {
+                        break;
+                    }
+                }
+                if n == 0 {
+                    break;
+                }
+            }
+            let status = if i == 2 { "201 Created" } else { "200 OK" };
+            let _ = write!(
+                c,
+                "HTTP/1.1 {status}\r\ncontent-type: application/json\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
+                body.len()
+            );
+        }
+        // Gone: the listener closes, every connection is refused.
+    });
+    let many = meshes(&tmp.path().join("many"), 6, 300);
+    let mut args = vec!["ingest", "--url", &url, "--json", "--jobs", "1"];
+    args.extend(many.iter().map(|p| s(p)));
+    let o = run(&args);
+    fake.join().unwrap();
+    assert_eq!(o.code, 69, "{}\n{}", o.stdout, o.stderr);
+    let v = o.json();
+    assert_eq!(v["created"], 1, "{v}");
+    assert_eq!(v["failed"].as_array().unwrap().len(), 1, "{v}");
+    assert_eq!(v["not_sent"], 4, "{v}");
+    assert!(
+        o.stderr
+            .contains("stopped answering: 4 of 6 files were not sent"),
+        "{}",
+        o.stderr
+    );
 }
 
 #[test]
@@ -818,4 +933,46 @@ fn make_traversable(p: &Path) {
             }
         }
     }
+}
+
+/// `eval` over a manifest with a row that cannot be analysed: the figures are over the other
+/// shapes, stderr names the row, and the exit status is 1 (it was 0, and a script comparing
+/// figures could not tell a run over fewer shapes).
+#[test]
+fn eval_that_leaves_shapes_out_says_so_and_exits_1() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("samples");
+    let o = run(&["samples", "--out", s(&dir)]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    let manifest = dir.join("manifest.csv");
+    let o = run(&["eval", "--manifest", s(&manifest), "--no-cache"]);
+    assert_eq!(o.code, 0, "{}{}", o.stdout, o.stderr);
+    assert!(o.stdout.contains("0 left out"), "{}", o.stdout);
+
+    std::fs::write(dir.join("broken.obj"), "v 0 0 0\nv 1 0 0\nf 1 2 7\n").unwrap();
+    let mut csv = std::fs::read_to_string(&manifest).unwrap();
+    let first_class = csv
+        .lines()
+        .nth(1)
+        .unwrap()
+        .split(',')
+        .nth(2)
+        .unwrap()
+        .to_string();
+    csv.push_str(&format!("broken,broken.obj,{first_class},noise,1,0\n"));
+    std::fs::write(&manifest, csv).unwrap();
+    let o = run(&["eval", "--manifest", s(&manifest), "--no-cache"]);
+    assert_eq!(o.code, 1, "{}{}", o.stdout, o.stderr);
+    assert!(o.stdout.contains("1 left out"), "{}", o.stdout);
+    assert!(
+        o.stdout.contains("| All"),
+        "the figures are printed: {}",
+        o.stdout
+    );
+    assert!(
+        o.stderr.contains("1 of 31 shapes could not be analysed")
+            && o.stderr.contains("broken.obj [mesh.parse]"),
+        "{}",
+        o.stderr
+    );
 }

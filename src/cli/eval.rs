@@ -170,8 +170,10 @@ impl EvalArgs {
 }
 
 /// Runs `shapeseek eval`: evaluates, prints the Markdown summary and stage times to stdout and
-/// writes the requested files.
-pub fn run(args: &EvalArgs) -> Result<()> {
+/// writes the requested files. `Ok(false)` when shapes had to be left out: the figures are
+/// over the others, the report lists them, stderr says so and the exit status is 1 (it was 0,
+/// and a script comparing figures could not tell a run over fewer shapes).
+pub fn run(args: &EvalArgs) -> Result<bool> {
     let opts = args.options()?;
     check_outputs(args)?;
     let out = evaluate(&opts)?;
@@ -182,7 +184,18 @@ pub fn run(args: &EvalArgs) -> Result<()> {
             report::per_strength_table(&out.results)
         );
     }
-    Ok(())
+    if let Some(first) = out.failures.first() {
+        eprintln!(
+            "eval: {} of {} shapes could not be analysed and are left out of every figure \
+             (listed under \"Left out of the ranking\"; first: {} [{}] {})",
+            out.failures.len(),
+            out.manifest.entries.len(),
+            first.path,
+            first.code,
+            first.message
+        );
+    }
+    Ok(out.failures.is_empty())
 }
 
 /// Refuses, before any work, output paths that cannot be written: a folder (`--out`,

@@ -15,6 +15,12 @@
 //! reported as already stored and nothing is computed, so an interrupted run is resumed by
 //! running it again. Every failure is listed at the end with its path, problem code and detail;
 //! the exit status is 1 when anything failed.
+//!
+//! Through a server, a file is sent with its name and tags as a multipart upload (they arrive
+//! as `--data` stores them); a file larger than the server's `max_body_bytes` is listed as
+//! `limit.bytes` without being sent; an upload that breaks off is sent again while the server
+//! answers, and when it no longer does the run stops, lists what was not sent and exits with
+//! status 69.
 
 use super::http::{Client, Failure};
 use super::{read_file, CliError};
@@ -24,7 +30,7 @@ use serde::Serialize;
 use std::collections::HashSet;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
@@ -114,6 +120,8 @@ struct Summary {
     created: usize,
     existing: usize,
     failed: Vec<Failed>,
+    /// Files not sent because the server stopped answering (0 otherwise).
+    not_sent: usize,
     seconds: f64,
     shapes: Vec<Done>,
 }
@@ -135,11 +143,44 @@ trait Target: Sync {
         name: &str,
         tags: &[String],
     ) -> Result<Stored, Failure>;
+
+    /// The target is gone (a server that stopped answering): no further file is sent.
+    fn gone(&self) -> bool {
+        false
+    }
 }
 
-struct Remote(Client);
+/// How often a file whose upload broke off is sent again while the server still answers (a
+/// connection closed by a restart, or a body refused mid-send by a busy server's budget).
+const RESENDS: u32 = 2;
+
+/// A running server.
+struct Remote {
+    client: Client,
+    /// The server's `max_body_bytes` (`GET /v1/index`'s `limits`), when it says.
+    max_body: Option<u64>,
+    /// Set when an upload broke off and the server no longer answers.
+    gone: AtomicBool,
+}
+
+impl Remote {
+    fn new(client: Client) -> Remote {
+        let max_body = client
+            .get("/v1/index")
+            .ok()
+            .and_then(|a| a.json["limits"]["max_body_bytes"].as_u64());
+        Remote {
+            client,
+            max_body,
+            gone: AtomicBool::new(false),
+        }
+    }
+}
 
 impl Target for Remote {
+    /// Sends the file as `multipart/form-data` with its name and tags in the JSON `metadata`
+    /// part, so they arrive as `--data` stores them (the query string's comma-separated `tags`
+    /// split a manifest tag such as `pose=sitting, arms up` in two and trimmed spaces).
     fn ingest(
         &self,
         bytes: Vec<u8>,
@@ -147,22 +188,60 @@ impl Target for Remote {
         name: &str,
         tags: &[String],
     ) -> Result<Stored, Failure> {
-        let mut query = vec![("name", name.to_string())];
-        if !tags.is_empty() {
-            query.push(("tags", tags.join(",")));
+        let meta = serde_json::json!({ "name": name, "tags": tags }).to_string();
+        let file_name = path
+            .file_name()
+            .map(|f| f.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let (ctype, body) = super::http::multipart(&file_name, &bytes, "metadata", meta.as_bytes());
+        // A body over the server's limit is not sent: the server would cut the connection
+        // while it is being sent, and the failure would read as a server that cannot be reached.
+        if let Some(max) = self.max_body.filter(|&m| body.len() as u64 > m) {
+            return Err(Failure {
+                status: 413,
+                code: "limit.bytes".into(),
+                detail: format!(
+                    "{} bytes: the server takes uploads up to {max} bytes (its max_body_bytes);                      not sent",
+                    bytes.len()
+                ),
+            });
         }
+        let mut query = Vec::new();
         if let Some(f) = super::format_hint(path) {
             query.push(("format", f.name().to_string()));
         }
-        let a = self
-            .0
-            .post("/v1/shapes", &query, "application/octet-stream", &bytes)?;
+        let mut resends = 0;
+        let a = loop {
+            match self.client.post("/v1/shapes", &query, &ctype, &body) {
+                // The upload broke off: a server that still answers gets it again (ingest is
+                // idempotent by content); one that does not ends the run.
+                Err(f) if f.status == 0 => match self.client.get("/readyz") {
+                    Err(p) if p.status == 0 => {
+                        self.gone.store(true, Ordering::Relaxed);
+                        return Err(Failure {
+                            detail: format!("{}; the server no longer answers", f.detail),
+                            ..f
+                        });
+                    }
+                    _ if resends < RESENDS => {
+                        resends += 1;
+                        std::thread::sleep(std::time::Duration::from_secs(resends.into()));
+                    }
+                    _ => return Err(f),
+                },
+                r => break r?,
+            }
+        };
         let id = a.json["id"].as_str().unwrap_or_default().to_string();
         Ok(if a.status == 201 {
             Stored::New(id)
         } else {
             Stored::Existing(id)
         })
+    }
+
+    fn gone(&self) -> bool {
+        self.gone.load(Ordering::Relaxed)
     }
 }
 
@@ -231,7 +310,7 @@ pub fn run(args: &IngestArgs) -> Result<bool, CliError> {
             let c = Client::new(&url)?;
             c.ready()?;
             let label = c.base().to_string();
-            (Box::new(Remote(c)), label)
+            (Box::new(Remote::new(c)), label)
         }
     };
 
@@ -253,6 +332,9 @@ pub fn run(args: &IngestArgs) -> Result<bool, CliError> {
     std::thread::scope(|s| {
         for _ in 0..args.jobs.min(items.len()) {
             s.spawn(|| loop {
+                if target.gone() {
+                    break;
+                }
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(item) = items.get(i) else { break };
                 let shown = item.path.display().to_string();
@@ -297,7 +379,9 @@ pub fn run(args: &IngestArgs) -> Result<bool, CliError> {
     bar.finish_and_clear();
     let mut shapes = done.into_inner().unwrap_or_else(|p| p.into_inner());
     shapes.sort_by(|a, b| a.path.cmp(&b.path));
-    failed.extend(errors.into_inner().unwrap_or_else(|p| p.into_inner()));
+    let errors = errors.into_inner().unwrap_or_else(|p| p.into_inner());
+    let not_sent = items.len() - shapes.len() - errors.len();
+    failed.extend(errors);
     failed.sort_by(|a, b| a.path.cmp(&b.path));
     let summary = Summary {
         target: label,
@@ -306,9 +390,24 @@ pub fn run(args: &IngestArgs) -> Result<bool, CliError> {
         existing: counts[1].load(Ordering::Relaxed),
         seconds: t0.elapsed().as_secs_f64(),
         failed,
+        not_sent,
         shapes,
     };
     print_summary(&summary, args.json);
+    if target.gone() {
+        // Before, every remaining file was tried and listed as "cannot reach", and the run
+        // ended with status 1 as if those files were at fault.
+        return Err(CliError::new(
+            "server.unreachable",
+            format!(
+                "the server at {} stopped answering: {not_sent} of {} files were not sent; \
+                 run the same command again once it is back (files it stored are skipped)",
+                summary.target,
+                items.len()
+            ),
+            69,
+        ));
+    }
     Ok(summary.failed.is_empty())
 }
 
@@ -325,8 +424,13 @@ fn print_summary(s: &Summary, json: bool) {
         );
         return;
     }
+    let not_sent = if s.not_sent > 0 {
+        format!(", {} not sent", s.not_sent)
+    } else {
+        String::new()
+    };
     println!(
-        "ingested into {}: {} new, {} already stored, {} failed ({:.1} s)",
+        "ingested into {}: {} new, {} already stored, {} failed{not_sent} ({:.1} s)",
         s.target,
         s.created,
         s.existing,
