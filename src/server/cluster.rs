@@ -328,7 +328,22 @@ impl App {
     }
 
     /// Brings the scan to the store's ids and epoch.
+    ///
+    /// The scan is read before the store is listed. A shape enters the scan only after it is
+    /// stored, and a deleted id is never stored again, so a shape held then and absent from the
+    /// later listing was deleted, and a stored shape missing from the scan is inserted (a
+    /// no-op when it entered meanwhile). Read the other way round, a shape stored during the
+    /// listing and entered into the scan before the read (an ingest on this node, right before
+    /// its 201) looked deleted, and was taken out of the scan until the change feed's insert or
+    /// the next reconciliation.
     pub(super) async fn reconcile(self: &Arc<Self>) -> Result<(), ApiError> {
+        let held: HashSet<String> = self
+            .scan
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .ids()
+            .into_iter()
+            .collect();
         let mut stored: HashSet<String> = HashSet::new();
         let mut after: Option<String> = None;
         loop {
@@ -343,13 +358,6 @@ impl App {
             sh.set_total(stored.len());
             stored.retain(|id| sh.spec.holds(id));
         }
-        let held: HashSet<String> = self
-            .scan
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .ids()
-            .into_iter()
-            .collect();
         let mut missing: Vec<&String> = stored.difference(&held).collect();
         missing.sort();
         for id in missing {

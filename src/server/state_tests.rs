@@ -1,7 +1,8 @@
-//! A delete that races an ingest or a search on the same node.
+//! A delete that races an ingest or a search on the same node; a reconciliation that races an
+//! ingest.
 
 use super::state::SearchOptions;
-use super::test_support::{ingest, meshes, OnFaulty};
+use super::test_support::{ingest, meshes, upload, OnFaulty};
 use std::sync::Arc;
 
 /// Ids are sequential: a client can delete a shape while its upload is being stored. When the
@@ -60,4 +61,44 @@ fn a_search_by_a_shape_deleted_from_the_store_is_not_found() {
         "{}",
         e.detail
     );
+}
+
+/// A reconciliation that lists the store while a shape is being stored, and reads the scan
+/// after that shape entered it, must not take the shape out of the scan: it was stored after
+/// the listing, not deleted. (It read the scan after listing the store, and removed such a
+/// shape until the change feed's insert or the next reconciliation: on a cluster node, right
+/// after the ingest's 201 said it was searchable there.)
+#[test]
+fn a_reconciliation_keeps_a_shape_stored_while_it_listed_the_store() {
+    let n = OnFaulty::start(2, |_| {});
+    let (app, handle) = (n.app.clone(), n.rt.handle().clone());
+    let stored = Arc::new(std::sync::Mutex::new(None));
+    let seen = stored.clone();
+    let once = std::sync::Mutex::new(Some(meshes()[2].clone()));
+    *n.faulty.after_list.lock().unwrap() = Some(Arc::new(move || {
+        let Some(mesh) = once.lock().unwrap().take() else {
+            return;
+        };
+        // An ingest on this node runs to its end (store, then scan) after the page was read.
+        let (app, handle) = (app.clone(), handle.clone());
+        let r = std::thread::spawn(move || handle.block_on(app.ingest(upload(&mesh, "late"))))
+            .join()
+            .unwrap()
+            .unwrap();
+        *seen.lock().unwrap() = Some(r.id);
+    }));
+    n.rt.block_on(n.app.reconcile()).unwrap();
+    *n.faulty.after_list.lock().unwrap() = None;
+    let id = stored
+        .lock()
+        .unwrap()
+        .clone()
+        .expect("the ingest ran during the listing");
+    assert!(n.app.block(n.store.get(&id)).unwrap().is_some());
+    let scan = n.app.scan.read().unwrap();
+    assert!(
+        scan.position(&id).is_some(),
+        "{id} is stored but was taken out of the scan"
+    );
+    assert_eq!(scan.len(), 3);
 }

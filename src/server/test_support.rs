@@ -77,17 +77,21 @@ pub fn meshes() -> Vec<Mesh> {
     ]
 }
 
-/// Ingests `mesh` as an OBJ upload named `name` (a new shape).
-pub fn ingest(app: &Arc<App>, rt: &tokio::runtime::Runtime, mesh: &Mesh, name: &str) -> String {
+/// The upload of `mesh` as OBJ, named `name`.
+pub fn upload(mesh: &Mesh, name: &str) -> Upload {
     let mut bytes = Vec::new();
     write_mesh(mesh, Format::Obj, &mut bytes).unwrap();
-    let up = Upload {
+    Upload {
         bytes: bytes.into(),
         hint: Some(Format::Obj),
         name: Some(name.to_string()),
         tags: Vec::new(),
-    };
-    let r = rt.block_on(app.ingest(up)).unwrap();
+    }
+}
+
+/// Ingests `mesh` as an OBJ upload named `name` (a new shape).
+pub fn ingest(app: &Arc<App>, rt: &tokio::runtime::Runtime, mesh: &Mesh, name: &str) -> String {
+    let r = rt.block_on(app.ingest(upload(mesh, name))).unwrap();
     assert!(r.created);
     r.id
 }

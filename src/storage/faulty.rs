@@ -26,6 +26,8 @@ pub(crate) struct Faulty {
     pub on_signature_read: Mutex<Option<Arc<dyn Fn() + Send + Sync>>>,
     /// Called with the id after each insert that stored a new shape, before it returns.
     pub after_insert: Mutex<Option<IdHook>>,
+    /// Called after each page of `list` was read, before it returns.
+    pub after_list: Mutex<Option<Arc<dyn Fn() + Send + Sync>>>,
     /// Reads of a page of signatures (`scan_signatures`) fail.
     pub fail_scans: AtomicBool,
     /// Pages of `scan_signatures` hold at most this many (0: no cap): short pages before the
@@ -43,6 +45,7 @@ impl Faulty {
             fail_scans: AtomicBool::new(false),
             on_signature_read: Mutex::new(None),
             after_insert: Mutex::new(None),
+            after_list: Mutex::new(None),
             page_cap: AtomicUsize::new(0),
         }
     }
@@ -116,7 +119,12 @@ impl ShapeStore for Faulty {
         self.inner.get(id).await
     }
     async fn list(&self, after: Option<&str>, tag: Option<&str>, limit: usize) -> Result<Page> {
-        self.inner.list(after, tag, limit).await
+        let page = self.inner.list(after, tag, limit).await?;
+        let hook = self.after_list.lock().unwrap().clone();
+        if let Some(f) = hook {
+            f();
+        }
+        Ok(page)
     }
     async fn signature(&self, id: &str) -> Result<Option<Vec<u8>>> {
         // Called outside the switch's lock: reads in parallel stay parallel.
