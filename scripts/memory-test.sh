@@ -5,10 +5,11 @@
 #   scripts/memory-test.sh [CONCURRENT] [UPLOAD_MIB]
 #
 # The server runs with its defaults (`max_body_bytes` 64 MiB, `max_inflight_body_bytes`
-# 256 MiB, `workers` = cores). For each of two kinds — an OBJ of a 2 000-vertex mesh padded
-# with comment lines, a glTF whose buffer is a data URI holding the same mesh and padding —
-# CONCURRENT (default 16) distinct uploads of UPLOAD_MIB (default 60) MiB are sent at once with
-# curl. Prints the statuses, the server's peak resident set (VmHWM of /proc/PID/status) and
+# 256 MiB, `workers` = cores). For each of three kinds — an OBJ of a 2 000-vertex mesh padded
+# with comment lines, a glTF whose buffer is a data URI holding the same mesh and padding, and
+# the OBJ again as the `file` part of a `multipart/form-data` body (as the web page and
+# `ingest --url` send it; its parts are parsed by copying) — CONCURRENT (default 16) distinct
+# uploads of UPLOAD_MIB (default 60) MiB are sent at once with curl. Prints the statuses, the server's peak resident set (VmHWM of /proc/PID/status) and
 # its resident set (VmRSS) once the uploads are answered, per kind; the server is restarted
 # between kinds so each peak is its own. Exits 1 if a peak exceeds BOUND_MIB or an answer is a
 # 5xx other than 503. BOUND_MIB defaults to the bound documented in docs/reliability.md for
@@ -99,14 +100,18 @@ for k in range(c):
 EOF
 
 fail=0
-for kind in obj gltf; do
-  ctype=model/obj; [ "$kind" = gltf ] && ctype=model/gltf+json
+for kind in obj gltf multipart; do
   start_server
   base="$(kib VmRSS)"
   pids=()
   for k in $(seq 0 $((C - 1))); do
-    curl -s -o /dev/null -w '%{http_code}\n' --max-time 300 -H "Content-Type: $ctype" \
-      --data-binary "@$WORK/pad-$k.$kind" "$URL/v1/shapes" >"$WORK/status-$k" &
+    case "$kind" in
+      obj) body=(-H "Content-Type: model/obj" --data-binary "@$WORK/pad-$k.obj") ;;
+      gltf) body=(-H "Content-Type: model/gltf+json" --data-binary "@$WORK/pad-$k.gltf") ;;
+      multipart) body=(-F "file=@$WORK/pad-$k.obj;type=model/obj") ;;
+    esac
+    curl -s -o /dev/null -w '%{http_code}\n' --max-time 300 "${body[@]}" "$URL/v1/shapes" \
+      >"$WORK/status-$k" &
     pids+=($!)
   done
   for p in "${pids[@]}"; do wait "$p" || true; done

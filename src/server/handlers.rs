@@ -1,6 +1,7 @@
 //! HTTP handlers: translate requests to [`App`] calls and results to JSON.
 
 use super::cluster::Queued;
+use super::limits::is_multipart;
 use super::problem::ApiError;
 use super::state::{validate_tags, App, SearchOptions, Upload};
 use crate::mesh::read::Format;
@@ -80,10 +81,6 @@ fn content_type(headers: &HeaderMap) -> Option<String> {
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
         .map(|s| s.to_ascii_lowercase())
-}
-
-fn is_multipart(headers: &HeaderMap) -> bool {
-    content_type(headers).is_some_and(|c| c.starts_with("multipart/form-data"))
 }
 
 fn is_json(headers: &HeaderMap) -> bool {

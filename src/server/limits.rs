@@ -64,6 +64,11 @@ pub fn stored_original(
 /// 40-byte search too) was refused with 503 for as long as they kept it up. A body that cannot
 /// take the next step is answered 503 `server.busy` then (the budget is full of bytes that
 /// did arrive).
+///
+/// A `multipart/form-data` body takes its size from the budget a second time once it has
+/// arrived (as far as the budget's total allows): its parts are parsed by copying (multer
+/// buffers the stream, and a part's bytes are collected again), so it is held about twice
+/// while the handler reads it, where a raw body is held once.
 pub struct BodyGate {
     /// Largest body, bytes.
     pub max_body_bytes: usize,
@@ -73,6 +78,8 @@ pub struct BodyGate {
     pub retry_after: u64,
     /// Budget in KiB (a semaphore takes at most `u32::MAX` permits at once).
     budget_kib: Arc<Semaphore>,
+    /// The budget's whole size in KiB.
+    total_kib: u32,
 }
 
 impl BodyGate {
@@ -88,6 +95,7 @@ impl BodyGate {
             read_timeout,
             retry_after,
             budget_kib: Arc::new(Semaphore::new(kib(max_inflight_bytes) as usize)),
+            total_kib: kib(max_inflight_bytes),
         }
     }
 
@@ -196,6 +204,16 @@ pub async fn admit_body(
             ))
         }
     };
+    if is_multipart(&parts.headers) {
+        // Held about twice while its parts are parsed (see [`BodyGate`]); never more than the
+        // whole budget, or a body near its size could not be admitted at all.
+        let held = permit.num_permits() as u32;
+        let extra = kib(bytes.len()).min(gate.total_kib.saturating_sub(held));
+        match gate.budget_kib.clone().try_acquire_many_owned(extra) {
+            Ok(more) => permit.merge(more),
+            Err(_) => return close(busy()),
+        }
+    }
     let resp = next
         .run(axum::extract::Request::from_parts(
             parts,
@@ -204,6 +222,18 @@ pub async fn admit_body(
         .await;
     drop(permit);
     resp
+}
+
+/// Whether the body is `multipart/form-data` (the handlers then read its parts).
+pub(super) fn is_multipart(headers: &axum::http::HeaderMap) -> bool {
+    headers
+        .get(axum::http::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|c| {
+            c.trim_start()
+                .to_ascii_lowercase()
+                .starts_with("multipart/form-data")
+        })
 }
 
 /// Why [`read_whole`] stopped.
@@ -285,5 +315,60 @@ mod tests {
         drop(other);
         drop(permit);
         assert_eq!(budget.available_permits(), kib(4 * RESERVE_STEP) as usize);
+    }
+
+    /// What the budget has free while a handler runs: a raw body holds its size, a multipart
+    /// one twice its size (its parsing copies it), at most the whole budget.
+    #[tokio::test]
+    async fn a_multipart_body_counts_twice_while_it_is_handled() {
+        use tower::ServiceExt;
+        let free_during = |gate: Arc<BodyGate>, ctype: &'static str, len: usize| async move {
+            let seen = gate.clone();
+            let app = axum::Router::new()
+                .route(
+                    "/",
+                    axum::routing::post(move || async move { seen.available_kib().to_string() }),
+                )
+                .layer(axum::middleware::from_fn_with_state(gate, admit_body));
+            let req = axum::http::Request::post("/")
+                .header("content-type", ctype)
+                .header("content-length", len)
+                .body(axum::body::Body::from(vec![b'#'; len]))
+                .unwrap();
+            let resp = app.oneshot(req).await.unwrap();
+            let status = resp.status().as_u16();
+            let body = axum::body::to_bytes(resp.into_body(), 1 << 20)
+                .await
+                .unwrap();
+            (status, String::from_utf8_lossy(&body).into_owned())
+        };
+        let gate = || {
+            Arc::new(BodyGate::new(
+                512 << 10,
+                1 << 20,
+                std::time::Duration::from_secs(5),
+                1,
+            ))
+        };
+        let body = 2 * RESERVE_STEP; // 128 KiB
+        assert_eq!(
+            free_during(gate(), "model/obj", body).await,
+            (200, "896".into())
+        );
+        assert_eq!(
+            free_during(gate(), "multipart/form-data; boundary=x", body).await,
+            (200, "768".into())
+        );
+        // A body of 512 KiB in a budget of 640 KiB: the second count stops at the total.
+        let tight = Arc::new(BodyGate::new(
+            512 << 10,
+            640 << 10,
+            std::time::Duration::from_secs(5),
+            1,
+        ));
+        assert_eq!(
+            free_during(tight, "Multipart/Form-Data; boundary=x", 512 << 10).await,
+            (200, "0".into())
+        );
     }
 }
