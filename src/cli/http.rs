@@ -82,6 +82,19 @@ impl Client {
         }
     }
 
+    /// Whether the server answers at all: `GET /readyz` once, within 5 s, any answer but a
+    /// proxy's 502 or 504 for a backend that is gone (a busy or loading server answers 503).
+    pub fn probe(&self) -> bool {
+        let r = self
+            .agent
+            .get(format!("{}/readyz", self.base))
+            .config()
+            .timeout_global(Some(Duration::from_secs(5)))
+            .build()
+            .call();
+        r.is_ok_and(|r| !matches!(r.status().as_u16(), 502 | 504))
+    }
+
     /// The [`CliError`] of a failure that prevented any answer.
     pub fn unreachable(&self, f: &Failure) -> CliError {
         CliError::new(

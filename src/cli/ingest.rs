@@ -19,8 +19,9 @@
 //! Through a server, a file is sent with its name and tags as a multipart upload (they arrive
 //! as `--data` stores them); a file larger than the server's `max_body_bytes` is listed as
 //! `limit.bytes` without being sent; an upload that breaks off is sent again while the server
-//! answers, and when it no longer does the run stops, lists what was not sent and exits with
-//! status 69.
+//! answers, and when it has not answered for about 7 s the run stops, lists what was not sent
+//! and exits with status 69. (A resent file whose first upload was stored, its answer lost,
+//! counts as already stored.)
 
 use super::http::{Client, Failure};
 use super::{read_file, CliError};
@@ -154,6 +155,10 @@ trait Target: Sync {
 /// connection closed by a restart, or a body refused mid-send by a busy server's budget).
 const RESENDS: u32 = 2;
 
+/// After an upload broke off, the server is asked whether it is there this many times, 0, 1,
+/// 2 and 4 s apart (a restarting server does not listen for a moment), before the run stops.
+const PROBES: u32 = 4;
+
 /// A running server.
 struct Remote {
     client: Client,
@@ -194,6 +199,7 @@ impl Target for Remote {
             .map(|f| f.to_string_lossy().into_owned())
             .unwrap_or_default();
         let (ctype, body) = super::http::multipart(&file_name, &bytes, "metadata", meta.as_bytes());
+        drop(bytes);
         // A body over the server's limit is not sent: the server would cut the connection
         // while it is being sent, and the failure would read as a server that cannot be reached.
         if let Some(max) = self.max_body.filter(|&m| body.len() as u64 > m) {
@@ -201,8 +207,9 @@ impl Target for Remote {
                 status: 413,
                 code: "limit.bytes".into(),
                 detail: format!(
-                    "{} bytes: the server takes uploads up to {max} bytes (its max_body_bytes);                      not sent",
-                    bytes.len()
+                    "{} bytes as an upload (the file with its name and tags): the server \
+                     takes up to {max} bytes (its max_body_bytes); not sent",
+                    body.len()
                 ),
             });
         }
@@ -215,20 +222,26 @@ impl Target for Remote {
             match self.client.post("/v1/shapes", &query, &ctype, &body) {
                 // The upload broke off: a server that still answers gets it again (ingest is
                 // idempotent by content); one that does not ends the run.
-                Err(f) if f.status == 0 => match self.client.get("/readyz") {
-                    Err(p) if p.status == 0 => {
+                Err(f) if f.status == 0 => {
+                    let answers = (0..PROBES).any(|i| {
+                        if i > 0 {
+                            std::thread::sleep(std::time::Duration::from_secs(1 << (i - 1)));
+                        }
+                        self.client.probe()
+                    });
+                    if !answers {
                         self.gone.store(true, Ordering::Relaxed);
                         return Err(Failure {
                             detail: format!("{}; the server no longer answers", f.detail),
                             ..f
                         });
                     }
-                    _ if resends < RESENDS => {
-                        resends += 1;
-                        std::thread::sleep(std::time::Duration::from_secs(resends.into()));
+                    if resends == RESENDS {
+                        return Err(f);
                     }
-                    _ => return Err(f),
-                },
+                    resends += 1;
+                    std::thread::sleep(std::time::Duration::from_secs(resends.into()));
+                }
                 r => break r?,
             }
         };
@@ -717,15 +730,23 @@ mod local {
                 config: config.map(Path::to_path_buf),
                 ..Default::default()
             };
+            // This process writes the sled directory, alone: the cluster settings do not apply,
+            // and an exported `SHAPESEEK_SHARD` (which needs a store and a queue) no longer
+            // makes the configuration invalid.
+            let env = std::env::vars().filter(|(k, _)| {
+                !matches!(
+                    k.as_str(),
+                    "SHAPESEEK_STORE" | "SHAPESEEK_QUEUE" | "SHAPESEEK_SHARD"
+                )
+            });
             let defaults = ServerConfig::default();
             let cfg = ServerConfig {
                 workers: jobs,
                 queue_capacity: jobs,
-                // This process writes the sled directory, alone: no cluster settings.
                 store: defaults.store,
                 queue: defaults.queue,
                 shard: defaults.shard,
-                ..serve.to_config()?
+                ..serve.to_config_from(env)?
             };
             let mut engine = shapeseek::index::default_engine();
             engine.analyze.eigen.k = cfg.eigenpairs;

@@ -396,7 +396,14 @@ pub struct ServeArgs {
 impl ServeArgs {
     /// Defaults < config file < environment < flags.
     pub fn to_config(&self) -> Result<ServerConfig> {
-        let env: Vec<(String, String)> = std::env::vars().collect();
+        self.to_config_from(std::env::vars())
+    }
+
+    /// [`Self::to_config`] with these variables in place of the process's environment.
+    pub fn to_config_from(
+        &self,
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<ServerConfig> {
         let file = self
             .config
             .clone()
