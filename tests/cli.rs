@@ -725,11 +725,13 @@ fn a_loading_server_answers_health_checks() {
         .spawn()
         .unwrap();
     let t0 = Instant::now();
-    let (mut loading, mut ready) = (None, false);
+    let (mut loading, mut page, mut ready) = (None, None, false);
     while t0.elapsed() < Duration::from_secs(120) && !ready {
         if let (Some((h, _)), Some((r, body))) = (get(port, "/healthz"), get(port, "/readyz")) {
             if r == 503 && loading.is_none() {
                 loading = Some((h, body));
+                // The viewer too (before: the 503's JSON where the page should be).
+                page = get(port, "/");
             }
             ready = r == 200;
         }
@@ -743,6 +745,13 @@ fn a_loading_server_answers_health_checks() {
     assert!(
         body.contains("server.not_ready") && body.to_lowercase().contains("retry-after"),
         "{body}"
+    );
+    let (code, page) = page.expect("the page answered while the index loaded");
+    assert_eq!(code, 200, "{}", &page[..page.len().min(400)]);
+    assert!(
+        page.to_lowercase().contains("content-type: text/html"),
+        "{}",
+        &page[..page.len().min(400)]
     );
 }
 

@@ -354,11 +354,14 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
 }
 
 /// What the listener serves: the loaded router once there is one, else `/healthz` 200 (the
-/// process is alive) and 503 `server.not_ready` (with `Retry-After`) for every other request.
+/// process is alive), the viewer's static files (the page then says the index is loading and
+/// asks again; before, a browser opened during a load showed the 503's JSON) and 503
+/// `server.not_ready` (with `Retry-After`) for every other request.
 fn front_router(loaded: Arc<std::sync::OnceLock<Router>>, retry_after: u64) -> Router {
     use tower::ServiceExt;
+    let page: Router = super::web::routes();
     Router::new().fallback(move |req: Request| {
-        let loaded = loaded.clone();
+        let (loaded, page) = (loaded.clone(), page.clone());
         async move {
             if let Some(r) = loaded.get() {
                 return match r.clone().oneshot(req).await {
@@ -372,6 +375,12 @@ fn front_router(loaded: Arc<std::sync::OnceLock<Router>>, retry_after: u64) -> R
             );
             if req.uri().path() == "/healthz" && read {
                 return axum::Json(serde_json::json!({"status": "ok"})).into_response();
+            }
+            if read && super::web::is_page(req.uri().path()) {
+                return match page.oneshot(req).await {
+                    Ok(resp) => resp,
+                    Err(never) => match never {},
+                };
             }
             ApiError::not_ready("not ready: the index is loading", retry_after).into_response()
         }

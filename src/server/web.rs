@@ -100,6 +100,11 @@ fn serve(i: usize, headers: &HeaderMap) -> Response {
     resp
 }
 
+/// Whether `path` is one of the viewer's (the node serves them while its index loads too).
+pub fn is_page(path: &str) -> bool {
+    path == "/index.html" || ASSETS.iter().any(|a| a.path == path)
+}
+
 /// The viewer's routes, merged into the API router (any state).
 pub fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
     Router::new()
