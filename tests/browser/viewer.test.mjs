@@ -230,8 +230,109 @@ test('delete a stored shape from the list', async () => {
   assert.match(resp.headers()['content-type'], /problem\+json/);
 });
 
+test('a search still being analysed does not draw over a later one', async () => {
+  // The upload's search is held back until a stored shape's search has been drawn.
+  let release;
+  const held = new Promise((r) => { release = r; });
+  const isUpload = (req) => req.method() === 'POST' && (req.headers()['content-type'] || '').startsWith('multipart/');
+  const slow = async (route) => {
+    if (isUpload(route.request())) await held;
+    return route.continue();
+  };
+  await page.route('**/v1/search', slow);
+  await page.setInputFiles('#file', join(SAMPLES, holdOut.path));
+  await page.waitForFunction(() => /analysing/.test(document.getElementById('status').textContent));
+  const row = page.locator('#shape-list li[data-id]').first();
+  const name = await row.locator('.name').textContent();
+  await row.locator('[data-testid=search-stored]').click();
+  await page.waitForFunction((n) => document.querySelector('[data-testid=query-card] figcaption')?.textContent.includes(n), name);
+  await page.waitForFunction(() => /hits of \d+ candidates/.test(document.getElementById('status').textContent));
+  const hitNames = () => page.$$eval('[data-testid=hit-card] figcaption', (f) => f.map((c) => c.children[1].textContent));
+  const drawn = await hitNames();
+  assert.ok(drawn.length > 0);
+  const uploadAnswered = page.waitForResponse((r) => r.url().endsWith('/v1/search') && isUpload(r.request()));
+  release();
+  await uploadAnswered;
+  // Before: the upload's hits were drawn under the stored shape's query card, and the status
+  // line became the upload's.
+  await page.waitForTimeout(1000);
+  const caption = await page.textContent('[data-testid=query-card] figcaption');
+  assert.ok(caption.includes(name), `the query card shows ${name}: ${caption}`);
+  assert.deepEqual(await hitNames(), drawn, 'the stored shape\'s hits stay');
+  assert.doesNotMatch(await page.textContent('#status'), /analysing the upload/);
+  await page.unroute('**/v1/search', slow);
+});
+
+test('a view whose mesh failed to load is loaded again by the next search', async () => {
+  // A fresh page: no mesh loaded yet.
+  await page.goto(URL_ + '/');
+  await page.waitForFunction(() => document.querySelectorAll('#shape-list li[data-id]').length > 0);
+  const row = page.locator('#shape-list li[data-id]').first();
+  const id = await row.getAttribute('data-id');
+  const busy = (route) => route.fulfill({
+    status: 503, contentType: 'application/problem+json', headers: { 'retry-after': '1' },
+    body: JSON.stringify({ title: 'Service Unavailable', status: 503, code: 'server.busy', detail: 'the test says so' }),
+  });
+  await page.route(`**/v1/shapes/${id}/mesh`, busy);
+  await row.locator('[data-testid=search-stored]').click();
+  await page.waitForFunction(() => document.querySelector('[data-testid=query-card] .view')?.dataset.rendered === 'error');
+  await page.unroute(`**/v1/shapes/${id}/mesh`, busy);
+  // Before: the failure was kept, and the shape showed "cannot display" until a reload.
+  await row.locator('[data-testid=search-stored]').click();
+  await page.waitForFunction(() => document.querySelector('[data-testid=query-card] .view')?.dataset.rendered === '1', null, { timeout: 60_000 });
+});
+
+test('a file over the server\'s upload limit is refused before it is sent', async () => {
+  const small = async (route) => {
+    const resp = await route.fetch();
+    const info = await resp.json();
+    info.limits.max_body_bytes = 5000;
+    return route.fulfill({ response: resp, json: info });
+  };
+  await page.route('**/v1/index', small);
+  const posts = [];
+  const watch = (req) => { if (req.method() === 'POST') posts.push(req.url()); };
+  page.on('request', watch);
+  await page.goto(URL_ + '/');
+  await page.waitForFunction(() => /stored shapes/.test(document.getElementById('index-info').textContent));
+  await page.setInputFiles('#file', { name: 'big.obj', mimeType: 'model/obj', buffer: Buffer.from(`# ${'x'.repeat(10_000)}\n`) });
+  await page.waitForSelector('#error:not([hidden])');
+  assert.equal(await page.getAttribute('#error', 'data-code'), 'limit.bytes');
+  assert.match(await page.textContent('#error'), /big\.obj has 10003 bytes; the server takes uploads up to 5000 bytes/);
+  assert.deepEqual(posts, [], 'nothing was sent');
+  page.off('request', watch);
+  await page.unroute('**/v1/index', small);
+  // The file chooser is reachable from the keyboard (it was display: none).
+  assert.notEqual(await page.$eval('#file', (e) => getComputedStyle(e).display), 'none');
+  await page.focus('#file');
+  assert.equal(await page.evaluate(() => document.activeElement.id), 'file');
+});
+
+test('a page opened while the server loads its index says so, and lists the shapes once it is ready', async () => {
+  const notReady = (route) => route.fulfill({
+    status: 503, contentType: 'application/problem+json', headers: { 'retry-after': '1' },
+    body: JSON.stringify({ title: 'Service Unavailable', status: 503, code: 'server.not_ready', detail: 'not ready: the index is loading' }),
+  });
+  let indexLeft = 2;
+  const index = (route) => (indexLeft-- > 0 ? notReady(route) : route.continue());
+  let listLeft = 1;
+  const list = (route) => (listLeft-- > 0 ? notReady(route) : route.continue());
+  await page.route('**/v1/index', index);
+  await page.route('**/v1/shapes?*', list);
+  await page.goto(URL_ + '/');
+  await page.waitForFunction(() => /loading its index; asking again in 1 s/.test(document.getElementById('index-info').textContent));
+  assert.equal(await page.isHidden('#error'), true, 'a loading server is not an error');
+  // Before: "index unavailable", the 503 in the error box and an empty list until a reload.
+  await page.waitForFunction(() => /stored shapes/.test(document.getElementById('index-info').textContent), null, { timeout: 20_000 });
+  await page.waitForFunction(() => document.querySelectorAll('#shape-list li[data-id]').length > 0);
+  assert.equal(await page.isHidden('#error'), true);
+  await page.unroute('**/v1/index', index);
+  await page.unroute('**/v1/shapes?*', list);
+});
+
 test('no script errors and no foreign requests', () => {
-  // The malformed upload's 4xx is logged by the browser as a failed resource; nothing else.
-  const unexpected = consoleErrors.filter((e) => !/status of 4\d\d/.test(e));
+  // The malformed upload's 4xx, and the 503s a test answers in the server's place, are logged
+  // by the browser as failed resources; nothing else.
+  const unexpected = consoleErrors.filter((e) => !/status of (4\d\d|503)/.test(e));
   assert.deepEqual(unexpected, []);
 });

@@ -38,7 +38,9 @@ async function api(method, path, body, headers = {}) {
   }
   if (!problem) problem = { title: resp.statusText, status: resp.status, detail: await resp.text().catch(() => '') };
   problem.status = problem.status || resp.status;
-  throw new ApiError(problem);
+  const err = new ApiError(problem);
+  err.retryAfter = parseInt(resp.headers.get('retry-after') || '', 10) || null;
+  throw err;
 }
 
 const getJson = async (path) => (await api('GET', path)).json();
@@ -295,13 +297,17 @@ requestAnimationFrame(loop);
 const geometryCache = new Map();
 
 async function loadStoredGeometry(rec) {
-  const key = `${rec.id}:${$('align').checked}`;
+  const align = $('align').checked;
+  const key = `${rec.id}:${align}`;
   if (!geometryCache.has(key)) {
-    geometryCache.set(key, (async () => {
+    const p = (async () => {
       const resp = await api('GET', `/v1/shapes/${encodeURIComponent(rec.id)}/mesh`);
       const bytes = new Uint8Array(await resp.arrayBuffer());
-      return normalizeGeometry(await parseMesh(bytes, rec.format || formatOf(rec.name || '', bytes)), $('align').checked);
-    })());
+      return normalizeGeometry(await parseMesh(bytes, rec.format || formatOf(rec.name || '', bytes)), align);
+    })();
+    geometryCache.set(key, p);
+    // A failed load (a 503, a network blip) is tried again next time, not kept.
+    p.catch(() => { if (geometryCache.get(key) === p) geometryCache.delete(key); });
   }
   return (await geometryCache.get(key)).clone();
 }
@@ -334,7 +340,10 @@ const HIT_COLOR = 0xd98f4f;
 
 // The current query: { name, tags, id (stored or null), geometry promise, bytes/format for uploads }.
 let current = null;
-let lastHits = [];
+// Each search's number: an answer (or a step of its drawing) whose search is no longer the
+// latest is dropped, so an upload still being analysed cannot draw over a later search.
+let searchSeq = 0;
+const stale = (seq) => seq !== searchSeq;
 
 function makeCard(kind, caption) {
   const fig = document.createElement('figure');
@@ -364,11 +373,14 @@ function recordById(id) {
   return getJson(`/v1/shapes/${encodeURIComponent(id)}`);
 }
 
-async function renderResults(result) {
+async function renderResults(result, seq) {
+  const q = current;
+  const records = await Promise.all(result.hits.map((h) => recordById(h.id).catch(() => null)));
+  if (stale(seq)) return;
+  // The cards are built first and put in place at once: a later search's drawing cannot mix.
   for (const el of [...views.keys()]) if ($('grid').contains(el)) detachView(el);
   const grid = $('grid');
   grid.replaceChildren();
-  const q = current;
   const qcap = [];
   const b = document.createElement('b'); b.textContent = 'query: ';
   const nm = document.createElement('span'); nm.textContent = q.name;
@@ -377,8 +389,6 @@ async function renderResults(result) {
   qc.fig.dataset.testid = 'query-card';
   grid.append(qc.fig);
   fillView(qc.view, q.geometry(), QUERY_COLOR);
-  lastHits = result.hits;
-  const records = await Promise.all(result.hits.map((h) => recordById(h.id).catch(() => null)));
   result.hits.forEach((hit, i) => {
     const rec = records[i] || { id: hit.id, name: hit.name, tags: [] };
     const rank = document.createElement('span'); rank.className = 'rank'; rank.textContent = `#${hit.rank}`;
@@ -392,7 +402,7 @@ async function renderResults(result) {
     if (q.tags && q.tags.length && rec.tags && rec.tags.some((t) => q.tags.includes(t))) c.fig.classList.add('same-class');
     grid.append(c.fig);
     fillView(c.view, loadStoredGeometry(rec), HIT_COLOR);
-    c.fig.addEventListener('click', (ev) => { if (ev.detail <= 1) openCompare(hit, rec); });
+    c.fig.addEventListener('click', (ev) => { if (ev.detail <= 1) openCompare(hit, rec, q); });
   });
   const t = result.timings || {};
   setStatus(`${result.hits.length} hits of ${result.candidates} candidates · stages: ${(result.stages || []).join(' → ') || 'scan'}` +
@@ -405,8 +415,11 @@ const fmtMs = (ms) => (ms === undefined ? '?' : `${ms.toFixed(ms < 10 ? 1 : 0)} 
 // ---------------------------------------------------------------------------------------------
 // Search.
 
+// The most hits drawn (each is a download and a 3D view); the form says so too.
+const MAX_HITS = 24;
+
 function searchOptions() {
-  const opts = { top_k: Math.max(1, Math.min(1000, parseInt($('topk').value, 10) || 8)) };
+  const opts = { top_k: Math.max(1, Math.min(MAX_HITS, parseInt($('topk').value, 10) || 8)) };
   const tag = $('search-tag').value.trim();
   if (tag) opts.tags = [tag];
   const mode = document.querySelector('input[name=rerank-mode]:checked').value;
@@ -422,33 +435,51 @@ function searchOptions() {
 }
 
 async function searchStored(rec) {
+  const seq = ++searchSeq;
   showError(null);
   hideCompare();
   current = { name: rec.name, tags: rec.tags, id: rec.id, geometry: () => loadStoredGeometry(rec) };
   setStatus(`searching for ${rec.name}…`);
   try {
     const result = await postJson('/v1/search', { id: rec.id, ...searchOptions() });
-    await renderResults(result);
+    if (stale(seq)) return;
+    await renderResults(result, seq);
   } catch (e) {
+    if (stale(seq)) return;
     showError(e);
     setStatus('search failed');
   }
 }
 
+// The server's upload limits (`GET /v1/index`): a file over `max_body_bytes` is refused here.
+// Sent, it would be cut off while being sent, which the browser reports as a network error.
+let uploadLimits = null;
+// What a multipart upload adds to the file: its boundaries, part headers and JSON part.
+const ENVELOPE_BYTES = 4096;
+
 async function searchUpload(file) {
+  const seq = ++searchSeq;
   showError(null);
   hideCompare();
-  const bytes = new Uint8Array(await file.arrayBuffer());
-  const format = formatOf(file.name, bytes);
-  const align = $('align').checked;
-  let parsed = null;
-  const geometry = () => {
-    if (!parsed) parsed = parseMesh(bytes, format).then((g) => normalizeGeometry(g, align));
-    return parsed.then((g) => g.clone());
-  };
-  current = { name: file.name, tags: [], id: null, geometry };
-  setStatus(`analysing ${file.name} (${(bytes.length / 1024).toFixed(0)} KiB)…`);
+  setStatus(`analysing ${file.name} (${(file.size / 1024).toFixed(0)} KiB)…`);
   try {
+    const max = uploadLimits && uploadLimits.max_body_bytes;
+    if (max && file.size + ENVELOPE_BYTES > max) {
+      throw new ApiError({
+        title: 'too large', code: 'limit.bytes',
+        detail: `${file.name} has ${file.size} bytes; the server takes uploads up to ${max} bytes (its max_body_bytes): not sent`,
+      });
+    }
+    const bytes = new Uint8Array(await file.arrayBuffer());
+    if (stale(seq)) return;
+    const format = formatOf(file.name, bytes);
+    const align = $('align').checked;
+    let parsed = null;
+    const geometry = () => {
+      if (!parsed) parsed = parseMesh(bytes, format).then((g) => normalizeGeometry(g, align));
+      return parsed.then((g) => g.clone());
+    };
+    current = { name: file.name, tags: [], id: null, geometry };
     let result;
     if ($('store').checked) {
       const fd = new FormData();
@@ -456,19 +487,23 @@ async function searchUpload(file) {
       const tags = $('store-tags').value.split(',').map((t) => t.trim()).filter(Boolean);
       fd.append('metadata', new Blob([JSON.stringify({ name: file.name, tags })], { type: 'application/json' }));
       const ing = await (await api('POST', '/v1/shapes', fd)).json();
+      // Stored: the list and the count change whatever the search does.
+      refreshList();
+      refreshIndexInfo();
+      if (stale(seq)) return;
       current.id = ing.id;
       current.tags = ing.shape.tags;
       result = await postJson('/v1/search', { id: ing.id, ...searchOptions() });
-      refreshList();
-      refreshIndexInfo();
     } else {
       const fd = new FormData();
       fd.append('file', new Blob([bytes]), file.name);
       fd.append('query', new Blob([JSON.stringify(searchOptions())], { type: 'application/json' }));
       result = await (await api('POST', '/v1/search', fd)).json();
     }
-    await renderResults(result);
+    if (stale(seq)) return;
+    await renderResults(result, seq);
   } catch (e) {
+    if (stale(seq)) return;
     showError(e);
     setStatus(`${file.name}: not searched`);
   }
@@ -486,13 +521,15 @@ function hideCompare() {
   compareHit = null;
 }
 
-async function openCompare(hit, rec) {
-  compareHit = { hit, rec };
+// `query` is the query of the grid the hit was drawn in (a search started since may have
+// replaced `current`).
+async function openCompare(hit, rec, query) {
+  compareHit = { hit, rec, query };
   $('compare').hidden = false;
-  $('compare-title').textContent = `${current.name}  vs  #${hit.rank} ${hit.name}`;
-  $('cmp-query-cap').textContent = `query: ${current.name}`;
+  $('compare-title').textContent = `${query.name}  vs  #${hit.rank} ${hit.name}`;
+  $('cmp-query-cap').textContent = `query: ${query.name}`;
   $('cmp-hit-cap').textContent = `#${hit.rank} ${hit.name} · score ${fmtScore(hit.score)}`;
-  fillView($('cmp-query'), current.geometry(), QUERY_COLOR);
+  fillView($('cmp-query'), query.geometry(), QUERY_COLOR);
   fillView($('cmp-hit'), loadStoredGeometry(rec), HIT_COLOR);
   $('compare').scrollIntoView({ behavior: 'instant', block: 'start' });
   await drawPlot();
@@ -517,13 +554,18 @@ function distributionChannels(sig) {
 }
 
 async function drawPlot() {
-  if (!compareHit) return;
+  // The hit and query of this drawing: the panel may be closed, or another hit opened, while
+  // the signatures load (the drawing is then dropped).
+  const cmp = compareHit;
+  if (!cmp) return;
+  const cur = cmp.query;
   const plot = $('plot');
   try {
     const [qs, hs] = await Promise.all([
-      current.id ? signature(current.id) : Promise.resolve(null),
-      signature(compareHit.hit.id),
+      cur.id ? signature(cur.id) : Promise.resolve(null),
+      signature(cmp.hit.id),
     ]);
+    if (cmp !== compareHit) return;
     const hch = distributionChannels(hs);
     const qch = qs ? distributionChannels(qs) : new Map();
     const sel = $('channel');
@@ -537,8 +579,8 @@ async function drawPlot() {
     if (!name) { plot.innerHTML = '<p class="note">this signature has no distance distributions</p>'; return; }
     const kind = document.querySelector('input[name=plot-kind]:checked').value;
     const series = [];
-    if (qch.has(name)) series.push({ label: `query: ${current.name}`, color: '#2a5fc9', dist: distributionFromSketch(qch.get(name)) });
-    series.push({ label: `#${compareHit.hit.rank} ${compareHit.hit.name}`, color: '#d0701f', dist: distributionFromSketch(hch.get(name)) });
+    if (qch.has(name)) series.push({ label: `query: ${cur.name}`, color: '#2a5fc9', dist: distributionFromSketch(qch.get(name)) });
+    series.push({ label: `#${cmp.hit.rank} ${cmp.hit.name}`, color: '#d0701f', dist: distributionFromSketch(hch.get(name)) });
     plot.innerHTML = plotDistributions(series, { kind, channel: name });
     if (!qch.has(name)) {
       const p = document.createElement('p');
@@ -547,7 +589,7 @@ async function drawPlot() {
       plot.append(p);
     }
   } catch (e) {
-    showError(e);
+    if (cmp === compareHit) showError(e);
   }
 }
 
@@ -578,6 +620,8 @@ async function refreshList() {
     $('prev').disabled = pageIdx === 0;
     $('next').disabled = !nextCursor;
   } catch (e) {
+    // A loading server: the index line says so, and lists again once it is ready.
+    if (e.problem && e.problem.code === 'server.not_ready') return;
     showError(e);
   }
 }
@@ -623,11 +667,29 @@ function shapeRow(rec) {
   return li;
 }
 
+// While the server loads its index (503 `server.not_ready`) the page says so and asks again
+// after the answer's Retry-After, then lists the shapes once it is ready.
+let retryTimer = null;
+
 async function refreshIndexInfo() {
   try {
     const info = await getJson('/v1/index');
+    uploadLimits = info.limits || null;
     $('index-info').textContent = `${info.shapes} stored shapes · calibration epoch ${info.calibration_epoch} · engine ${info.engine}`;
+    if (retryTimer !== null) {
+      retryTimer = null;
+      showError(null);
+      refreshList();
+    }
   } catch (e) {
+    const p = e.problem || {};
+    if (p.status === 503 && p.code === 'server.not_ready') {
+      const secs = Math.min(30, Math.max(1, e.retryAfter || 2));
+      $('index-info').textContent = `the server is loading its index; asking again in ${secs} s`;
+      clearTimeout(retryTimer);
+      retryTimer = setTimeout(refreshIndexInfo, secs * 1000);
+      return;
+    }
     $('index-info').textContent = 'index unavailable';
     showError(e);
   }
