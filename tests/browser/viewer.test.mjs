@@ -330,6 +330,36 @@ test('a page opened while the server loads its index says so, and lists the shap
   await page.unroute('**/v1/shapes?*', list);
 });
 
+test('hits open from the keyboard, and the wheel over a view scrolls the page (Ctrl+wheel zooms)', async () => {
+  await page.setViewportSize({ width: 1000, height: 500 });
+  await page.locator('#shape-list li[data-id]').first().locator('[data-testid=search-stored]').click();
+  await waitRendered('#grid .view', 9);
+  // Keyboard: a hit card takes the focus and Enter opens it (it opened only on a click).
+  await page.focus('[data-testid=hit-card]');
+  await page.keyboard.press('Enter');
+  await page.waitForSelector('#compare:not([hidden])');
+  await page.click('#compare-close');
+  // The wheel over a view scrolls the page and leaves the camera where it is (it zoomed, and
+  // the page did not scroll).
+  const distance = () => page.evaluate(() => [...window.shapeseekViewer.views.values()][0].controls.object.position.length());
+  await page.evaluate(() => window.scrollTo(0, 0));
+  const d0 = await distance();
+  const box = await page.locator('#grid .view').first().boundingBox();
+  await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+  await page.mouse.wheel(0, 200);
+  await page.waitForFunction(() => window.scrollY > 0);
+  assert.equal(await distance(), d0, 'the wheel alone does not zoom');
+  await page.evaluate(() => window.scrollTo(0, 0));
+  const b2 = await page.locator('#grid .view').first().boundingBox();
+  await page.mouse.move(b2.x + b2.width / 2, b2.y + b2.height / 2);
+  await page.keyboard.down('Control');
+  await page.mouse.wheel(0, 200);
+  await page.keyboard.up('Control');
+  await page.waitForFunction((d) => [...window.shapeseekViewer.views.values()][0].controls.object.position.length() !== d, d0);
+  assert.equal(await page.evaluate(() => window.scrollY), 0, 'Ctrl+wheel zooms instead of scrolling');
+  await page.setViewportSize({ width: 1400, height: 1000 });
+});
+
 test('no script errors and no foreign requests', () => {
   // The malformed upload's 4xx, and the 503s a test answers in the server's place, are logged
   // by the browser as failed resources; nothing else.

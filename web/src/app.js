@@ -241,11 +241,24 @@ function makeScene(geometry, color) {
   return scene;
 }
 
+// The wheel over a view scrolls the page (the views fill it: zooming on every wheel turn made
+// the page hard to scroll); with Ctrl held it zooms (Shift turns the wheel sideways in
+// Chromium), within bounds that keep the shape in sight.
+function zoomOnlyWithModifier(ev) {
+  const v = views.get(ev.currentTarget);
+  if (v) v.controls.enableZoom = ev.ctrlKey;
+}
+
 function attachView(el, geometry, color) {
   detachView(el);
   const controls = new OrbitControls(camera, el);
   controls.enableDamping = false;
+  controls.enableZoom = false;
+  controls.minDistance = 1.2;
+  controls.maxDistance = 8;
   controls.addEventListener('change', () => { dirty = true; });
+  // Before OrbitControls' own listener (capture phase), which cancels the scroll when zooming.
+  el.addEventListener('wheel', zoomOnlyWithModifier, { capture: true });
   views.set(el, { scene: makeScene(geometry, color), controls });
   dirty = true;
 }
@@ -254,6 +267,7 @@ function detachView(el) {
   const v = views.get(el);
   if (!v) return;
   v.controls.dispose();
+  el.removeEventListener('wheel', zoomOnlyWithModifier, { capture: true });
   v.scene.traverse((o) => { if (o.isMesh) { o.geometry.dispose(); o.material.dispose(); } });
   views.delete(el);
   dirty = true;
@@ -399,6 +413,13 @@ async function renderResults(result, seq) {
     c.fig.dataset.testid = 'hit-card';
     c.fig.dataset.rank = hit.rank;
     c.fig.title = 'open next to the query';
+    // Reachable from the keyboard: Tab to a hit, Enter or Space opens it.
+    c.fig.tabIndex = 0;
+    c.fig.setAttribute('role', 'button');
+    c.fig.setAttribute('aria-label', `hit ${hit.rank}: ${hit.name}, open next to the query`);
+    c.fig.addEventListener('keydown', (ev) => {
+      if (ev.key === 'Enter' || ev.key === ' ') { ev.preventDefault(); openCompare(hit, rec, q); }
+    });
     if (q.tags && q.tags.length && rec.tags && rec.tags.some((t) => q.tags.includes(t))) c.fig.classList.add('same-class');
     grid.append(c.fig);
     fillView(c.view, loadStoredGeometry(rec), HIT_COLOR);
