@@ -428,7 +428,7 @@ async function renderResults(result, seq) {
   const t = result.timings || {};
   setStatus(`${result.hits.length} hits of ${result.candidates} candidates · stages: ${(result.stages || []).join(' → ') || 'scan'}` +
     ` · ${fmtMs(t.total_ms)} ranking${t.analysis && t.analysis.total_ms ? `, ${fmtMs(t.analysis.total_ms)} analysing the upload` : ''}` +
-    ' · click a hit to open it next to the query; drag any view to orbit (one camera for all)');
+    ' · click a hit to open it next to the query; drag any view to orbit, Ctrl+wheel to zoom (one camera for all)');
 }
 
 const fmtMs = (ms) => (ms === undefined ? '?' : `${ms.toFixed(ms < 10 ? 1 : 0)} ms`);
