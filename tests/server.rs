@@ -268,6 +268,30 @@ fn ingest_every_format_read_back_list_delete() {
         assert_eq!(m.status, 200);
         assert_eq!(m.body, b);
         assert_eq!(m.header("content-type"), Some("application/octet-stream"));
+        // With ?format=, the mesh as the server read it, in any format: the same surface
+        // whatever was uploaded (the web page reads every stored shape as PLY).
+        for to in Format::ALL {
+            let m = get(a, &format!("/v1/shapes/{id}/mesh?format={to}"));
+            assert_eq!(
+                m.status,
+                200,
+                "{format} as {to}: {}",
+                String::from_utf8_lossy(&m.body)
+            );
+            assert_eq!(m.header("content-type"), Some("application/octet-stream"));
+            let disposition = format!("attachment; filename=\"{id}.{to}\"");
+            assert_eq!(m.header("content-disposition"), Some(disposition.as_str()));
+            let back = shapeseek::mesh::read::read_mesh(&m.body, Some(to), &Default::default())
+                .unwrap_or_else(|e| panic!("{format} as {to}: {e}"));
+            assert_eq!(back.faces.len(), mesh.faces.len(), "{format} as {to}");
+            let rel = (back.area() - mesh.area()).abs() / mesh.area();
+            assert!(
+                rel < 1e-6,
+                "{format} as {to}: area {} vs {}",
+                back.area(),
+                mesh.area()
+            );
+        }
         ids.push((id, b));
     }
     // Idempotent: the same bytes again → 200, same id, nothing new.
@@ -1172,13 +1196,18 @@ fn bad_input_is_problem_json() {
         ("GET", "/v1/shapes?tags=chair"),
         ("POST", "/v1/shapes?tag=chair"),
         ("POST", "/v1/search?topk=3"),
+        ("GET", "/v1/shapes/0000000000000001/mesh?as=ply"),
     ] {
         let p =
             http(a, method, path, Some("model/obj"), b"v 0 0 0\n").problem(400, "request.invalid");
         let detail = p["detail"].as_str().unwrap_or_default();
         assert!(detail.contains("unknown field"), "{path}: {detail}");
-        assert!(detail.contains("expected one of"), "{path}: {detail}");
+        // "expected one of `a`, `b`", or "expected `format`" where one name is accepted.
+        assert!(detail.contains("expected"), "{path}: {detail}");
     }
+    // A format the mesh route cannot write is refused before the shape is looked up.
+    let p = get(a, "/v1/shapes/0000000000000001/mesh?format=fbx").problem(400, "request.invalid");
+    assert!(p["detail"].as_str().unwrap_or_default().contains("fbx"));
     get(a, "/nope").problem(404, "route.not_found");
     http(a, "PUT", "/v1/search", None, b"").problem(405, "request.method_not_allowed");
     // Nothing was stored, and the server still answers.

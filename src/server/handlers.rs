@@ -327,8 +327,37 @@ pub async fn delete_shape(
     }
 }
 
-/// `GET /v1/shapes/{id}/mesh`: the original upload.
-pub async fn get_mesh(State(app): AppState, Path(id): Path<String>) -> Result<Response, ApiError> {
+/// Query parameters of `GET /v1/shapes/{id}/mesh` (unknown names refused).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeshParams {
+    /// A format name: the mesh as the server read it, written in that format, instead of the
+    /// original bytes.
+    pub format: Option<String>,
+}
+
+/// `GET /v1/shapes/{id}/mesh`: the original upload, or with `?format=` the mesh read from it
+/// written in that format (a client then needs one reader whatever was uploaded; the web page
+/// asks for binary PLY).
+pub async fn get_mesh(
+    State(app): AppState,
+    Path(id): Path<String>,
+    Query(params): Query<MeshParams>,
+    req: Request,
+) -> Result<Response, ApiError> {
+    let to = match params.format.as_deref() {
+        None => None,
+        Some(f) => Some(
+            Format::ALL
+                .into_iter()
+                .find(|x| x.name() == f)
+                .ok_or_else(|| {
+                    ApiError::invalid(format!(
+                        "format {f:?}: expected one of obj, gltf, glb, ply, off, stl"
+                    ))
+                })?,
+        ),
+    };
     let rec = app
         .store
         .get(&id)
@@ -341,18 +370,24 @@ pub async fn get_mesh(State(app): AppState, Path(id): Path<String>) -> Result<Re
         .await
         .map_err(ApiError::internal)?
         .ok_or_else(|| ApiError::not_found(&id))?;
+    let (mut resp, ext) = match to {
+        None => (bytes.into_response(), rec.format.as_str()),
+        Some(to) => {
+            let deadline = super::router::deadline_of(&req);
+            let out = app
+                .convert_original(bytes, &rec.format, to, deadline)
+                .await?;
+            (out.into_response(), to.name())
+        }
+    };
     // Always octet-stream (the record's `format`/`content_type` name the format): a format type
     // such as `model/gltf+json` would make clients parse the download as JSON.
-    let mut resp = bytes.into_response();
     let h = resp.headers_mut();
     h.insert(
         header::CONTENT_TYPE,
         HeaderValue::from_static("application/octet-stream"),
     );
-    if let Ok(v) = HeaderValue::from_str(&format!(
-        "attachment; filename=\"{}.{}\"",
-        rec.id, rec.format
-    )) {
+    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{}.{ext}\"", rec.id)) {
         h.insert(header::CONTENT_DISPOSITION, v);
     }
     Ok(resp)

@@ -7,7 +7,7 @@
 //! | POST | `/v1/shapes` | ingest (raw body or multipart `file` + `metadata`); 201, or 200 for known bytes |
 //! | GET | `/v1/shapes` | list, `?limit&cursor&tag` |
 //! | GET, DELETE | `/v1/shapes/{id}` | record / delete |
-//! | GET | `/v1/shapes/{id}/mesh` | original bytes (`application/octet-stream`) |
+//! | GET | `/v1/shapes/{id}/mesh` | original bytes (`application/octet-stream`); `?format=` the mesh read from them, written in that format |
 //! | GET | `/v1/shapes/{id}/signature` | the signature's distributions as JSON |
 //! | POST | `/v1/search` | by id (JSON), by upload (raw or multipart `file` + `query`), rerank stages |
 //! | GET | `/v1/index` | size, calibration epoch, specs, queue |

@@ -509,6 +509,37 @@ impl App {
         }
     }
 
+    /// The stored original `orig` of a shape whose record names `format`, read as a mesh and
+    /// written again as `to` (binary PLY, binary STL, glTF with an embedded buffer: the
+    /// writers' defaults): the surface every analysis of the shape starts from, triangulated,
+    /// every glTF primitive in one mesh, in a format the client chose. Admitted as CPU work
+    /// costing [`Cost::conversion`] of the original's size, so conversions wait in the lanes
+    /// like any other work and as many run at once (the memory of the parsed meshes is bounded
+    /// the same way).
+    pub async fn convert_original(
+        &self,
+        orig: Vec<u8>,
+        format: &str,
+        to: Format,
+        deadline: Option<Instant>,
+    ) -> Result<Vec<u8>, ApiError> {
+        let hint = Format::from_extension(format);
+        self.admission
+            .run(
+                Cost::conversion(orig.len()),
+                deadline,
+                move |_| -> Result<Vec<u8>, ApiError> {
+                    let mesh = read_mesh(&orig, hint, &ReadLimits::unlimited())
+                        .map_err(ApiError::internal)?;
+                    let mut out = Vec::new();
+                    crate::mesh::write::write_mesh(&mesh, to, &mut out)
+                        .map_err(ApiError::internal)?;
+                    Ok(out)
+                },
+            )
+            .await
+    }
+
     /// Analyses an uploaded query mesh on the pool (nothing is stored); the re-ranking
     /// payload is computed when `with_payload`.
     pub async fn analyze_query(
