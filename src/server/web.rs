@@ -6,7 +6,8 @@
 //! | path | what |
 //! | --- | --- |
 //! | `/`, `/index.html` | the page |
-//! | `/assets/app.js` | the bundle (the viewer + three.js and its loaders/controls) |
+//! | `/assets/app.js` | the bundle (the viewer + three.js's renderer and controls) |
+//! | `/assets/parse-worker.js` | the worker that reads mesh files (three.js's loaders) |
 //! | `/assets/style.css` | the style sheet |
 //! | `/assets/THREE-LICENSE.txt` | three.js's licence |
 //!
@@ -31,7 +32,7 @@ pub struct Asset {
 }
 
 /// Every embedded file of the viewer.
-pub const ASSETS: [Asset; 4] = [
+pub const ASSETS: [Asset; 5] = [
     Asset {
         path: "/",
         content_type: "text/html; charset=utf-8",
@@ -48,6 +49,11 @@ pub const ASSETS: [Asset; 4] = [
         bytes: include_bytes!("../../web/dist/style.css"),
     },
     Asset {
+        path: "/assets/parse-worker.js",
+        content_type: "text/javascript; charset=utf-8",
+        bytes: include_bytes!("../../web/dist/parse-worker.js"),
+    },
+    Asset {
         path: "/assets/THREE-LICENSE.txt",
         content_type: "text/plain; charset=utf-8",
         bytes: include_bytes!("../../web/dist/THREE-LICENSE.txt"),
@@ -60,8 +66,8 @@ const CSP: &str = "default-src 'self'; script-src 'self'; style-src 'self'; \
                    img-src 'self' data: blob:; connect-src 'self' data: blob:; \
                    object-src 'none'; base-uri 'none'; frame-ancestors 'none'";
 
-fn etags() -> &'static [String; 4] {
-    static TAGS: OnceLock<[String; 4]> = OnceLock::new();
+fn etags() -> &'static [String; ASSETS.len()] {
+    static TAGS: OnceLock<[String; ASSETS.len()]> = OnceLock::new();
     TAGS.get_or_init(|| {
         ASSETS.each_ref().map(|a| {
             let h = Sha256::digest(a.bytes);
@@ -105,26 +111,17 @@ pub fn is_page(path: &str) -> bool {
     path == "/index.html" || ASSETS.iter().any(|a| a.path == path)
 }
 
-/// The viewer's routes, merged into the API router (any state).
+/// The viewer's routes, merged into the API router (any state): every asset at its path, the
+/// page at `/index.html` too.
 pub fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
-    Router::new()
-        .route("/", get(|h: HeaderMap| async move { serve(0, &h) }))
-        .route(
-            "/index.html",
-            get(|h: HeaderMap| async move { serve(0, &h) }),
-        )
-        .route(
-            "/assets/app.js",
-            get(|h: HeaderMap| async move { serve(1, &h) }),
-        )
-        .route(
-            "/assets/style.css",
-            get(|h: HeaderMap| async move { serve(2, &h) }),
-        )
-        .route(
-            "/assets/THREE-LICENSE.txt",
-            get(|h: HeaderMap| async move { serve(3, &h) }),
-        )
+    let mut r = Router::new().route(
+        "/index.html",
+        get(|h: HeaderMap| async move { serve(0, &h) }),
+    );
+    for (i, a) in ASSETS.iter().enumerate() {
+        r = r.route(a.path, get(move |h: HeaderMap| async move { serve(i, &h) }));
+    }
+    r
 }
 
 #[cfg(test)]
@@ -147,7 +144,14 @@ mod tests {
             !js.contains("import(\"http") && !js.contains("from\"http"),
             "no remote import"
         );
-        let lic = std::str::from_utf8(ASSETS[3].bytes).unwrap();
+        // The page starts the mesh reader from the worker bundle's path, next to its own.
+        assert!(js.contains("parse-worker.js"), "app.js starts the worker");
+        let worker = std::str::from_utf8(ASSETS[3].bytes).unwrap();
+        assert!(
+            worker.contains("PLY"),
+            "the worker bundle holds the loaders"
+        );
+        let lic = std::str::from_utf8(ASSETS[4].bytes).unwrap();
         assert!(lic.contains("MIT License") && lic.contains("three.js authors"));
     }
 

@@ -2,12 +2,7 @@
 // shapes. Talks only to the same-origin REST API (see /openapi.yaml).
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
-import { OBJLoader } from 'three/addons/loaders/OBJLoader.js';
-import { PLYLoader } from 'three/addons/loaders/PLYLoader.js';
-import { STLLoader } from 'three/addons/loaders/STLLoader.js';
-import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
-import { mergeVertices } from 'three/addons/utils/BufferGeometryUtils.js';
-import { parseOff } from './off.js';
+import { formatOf } from './format.js';
 import { distributionFromSketch, plotDistributions } from './plot.js';
 
 const $ = (id) => document.getElementById(id);
@@ -68,153 +63,48 @@ function showError(err) {
 function setStatus(text) { $('status').textContent = text; }
 
 // ---------------------------------------------------------------------------------------------
-// Mesh parsing in the browser (the server keeps the original bytes: /v1/shapes/{id}/mesh).
+// Meshes are read in a worker (parse-worker.js, parse.js): a large file parses while the page
+// stays responsive. One worker, requests answered in order.
 
-function formatOf(name, bytes) {
-  const head = new TextDecoder().decode(bytes.slice(0, 5));
-  if (head.startsWith('glTF')) return 'glb';
-  if (head.startsWith('ply')) return 'ply';
-  if (/^(C|N|ST)?OFF/.test(head)) return 'off';
-  const ext = (name.split('.').pop() || '').toLowerCase();
-  return ['obj', 'gltf', 'glb', 'ply', 'off', 'stl'].includes(ext) ? ext : 'obj';
+let worker = null;
+let workerSeq = 0;
+const pending = new Map(); // request id -> { resolve, reject }
+
+function meshWorker() {
+  if (!worker) {
+    worker = new Worker(new URL('./parse-worker.js', import.meta.url), { type: 'module' });
+    worker.onmessage = ({ data }) => {
+      const p = pending.get(data.id);
+      if (!p) return;
+      pending.delete(data.id);
+      if (data.error) p.reject(new Error(data.error));
+      else p.resolve(data);
+    };
+    worker.onerror = (e) => {
+      // The worker itself failed (not a file it could not read): every request fails, and
+      // the next one starts a new worker.
+      const err = new Error(`the mesh reader stopped: ${e.message || 'worker error'}`);
+      for (const p of pending.values()) p.reject(err);
+      pending.clear();
+      worker = null;
+    };
+  }
+  return worker;
 }
 
-function geometriesOf(object) {
-  const out = [];
-  object.updateMatrixWorld(true);
-  object.traverse((o) => {
-    if (o.isMesh && o.geometry) {
-      const g = o.geometry.clone();
-      g.applyMatrix4(o.matrixWorld);
-      out.push(g);
-    }
+/** `bytes` of `format` as a drawable geometry (welded, normalised; see parse.js). */
+async function readGeometry(bytes, format, align, transfer = false) {
+  const id = ++workerSeq;
+  const data = await new Promise((resolve, reject) => {
+    pending.set(id, { resolve, reject });
+    meshWorker().postMessage({ id, bytes, format, align }, transfer ? [bytes.buffer] : []);
   });
-  return out;
-}
-
-function mergeAll(geoms) {
-  // Positions only, non-indexed, then welded: enough to render the surface.
-  let n = 0;
-  const parts = geoms.map((g) => (g.index ? g.toNonIndexed() : g));
-  for (const g of parts) n += g.attributes.position.count;
-  const pos = new Float32Array(n * 3);
-  let off = 0;
-  for (const g of parts) {
-    const a = g.attributes.position;
-    for (let i = 0; i < a.count; i++) {
-      pos[off++] = a.getX(i); pos[off++] = a.getY(i); pos[off++] = a.getZ(i);
-    }
-  }
-  const out = new THREE.BufferGeometry();
-  out.setAttribute('position', new THREE.BufferAttribute(pos, 3));
-  return out;
-}
-
-async function parseMesh(bytes, format) {
-  const buf = bytes.buffer.slice(bytes.byteOffset, bytes.byteOffset + bytes.byteLength);
-  let geoms;
-  switch (format) {
-    case 'obj':
-      geoms = geometriesOf(new OBJLoader().parse(new TextDecoder().decode(bytes)));
-      break;
-    case 'ply':
-      geoms = [new PLYLoader().parse(buf)];
-      break;
-    case 'stl':
-      geoms = [new STLLoader().parse(buf)];
-      break;
-    case 'off':
-      geoms = [parseOff(new TextDecoder().decode(bytes))];
-      break;
-    case 'gltf':
-    case 'glb': {
-      const gltf = await new GLTFLoader().parseAsync(format === 'glb' ? buf : new TextDecoder().decode(bytes), '');
-      geoms = geometriesOf(gltf.scene);
-      break;
-    }
-    default:
-      throw new Error(`unknown format ${format}`);
-  }
-  geoms = geoms.filter((g) => g.attributes.position && g.attributes.position.count >= 3);
-  if (!geoms.length) throw new Error('no triangles to display');
-  let g = mergeAll(geoms);
-  g.deleteAttribute('normal');
-  g = mergeVertices(g, 1e-6);
-  g.computeVertexNormals();
-  return g;
-}
-
-/** Centres on the area-free vertex mean, optionally rotates to principal axes, scales to the unit sphere. */
-function normalizeGeometry(g, align) {
-  const p = g.attributes.position;
-  const n = p.count;
-  const c = new THREE.Vector3();
-  for (let i = 0; i < n; i++) c.add(new THREE.Vector3(p.getX(i), p.getY(i), p.getZ(i)));
-  c.divideScalar(n);
-  g.translate(-c.x, -c.y, -c.z);
-  if (align) {
-    const cov = [[0, 0, 0], [0, 0, 0], [0, 0, 0]];
-    for (let i = 0; i < n; i++) {
-      const v = [p.getX(i), p.getY(i), p.getZ(i)];
-      for (let a = 0; a < 3; a++) for (let b = 0; b < 3; b++) cov[a][b] += v[a] * v[b];
-    }
-    const axes = jacobiEigenvectors(cov); // columns sorted by decreasing variance
-    // Sign convention: the third moment along each axis is positive (a stable, pose-free choice).
-    const m = new THREE.Matrix4();
-    const cols = axes.map((ax) => {
-      let s3 = 0;
-      for (let i = 0; i < n; i++) {
-        const d = p.getX(i) * ax[0] + p.getY(i) * ax[1] + p.getZ(i) * ax[2];
-        s3 += d * d * d;
-      }
-      return s3 < 0 ? ax.map((x) => -x) : ax;
-    });
-    // Right-handed: third = first × second.
-    const a0 = new THREE.Vector3(...cols[0]);
-    const a1 = new THREE.Vector3(...cols[1]);
-    const a2 = new THREE.Vector3().crossVectors(a0, a1);
-    // Longest axis along x, second along y (the view looks down -z from +z-ish).
-    m.set(a0.x, a0.y, a0.z, 0, a1.x, a1.y, a1.z, 0, a2.x, a2.y, a2.z, 0, 0, 0, 0, 1);
-    g.applyMatrix4(m);
-  }
+  const g = new THREE.BufferGeometry();
+  g.setAttribute('position', new THREE.BufferAttribute(data.position, 3));
+  g.setAttribute('normal', new THREE.BufferAttribute(data.normal, 3));
+  if (data.index) g.setIndex(new THREE.BufferAttribute(data.index, 1));
   g.computeBoundingSphere();
-  const r = g.boundingSphere.radius || 1;
-  g.scale(1 / r, 1 / r, 1 / r);
-  g.computeVertexNormals();
   return g;
-}
-
-function jacobiEigenvectors(a0) {
-  const a = a0.map((r) => r.slice());
-  const v = [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
-  for (let sweep = 0; sweep < 50; sweep++) {
-    let off = 0;
-    for (let p = 0; p < 3; p++) for (let q = p + 1; q < 3; q++) off += a[p][q] * a[p][q];
-    if (off < 1e-20) break;
-    for (let p = 0; p < 3; p++) {
-      for (let q = p + 1; q < 3; q++) {
-        if (Math.abs(a[p][q]) < 1e-30) continue;
-        const theta = (a[q][q] - a[p][p]) / (2 * a[p][q]);
-        const t = Math.sign(theta || 1) / (Math.abs(theta) + Math.sqrt(theta * theta + 1));
-        const c = 1 / Math.sqrt(t * t + 1);
-        const s = t * c;
-        for (let k = 0; k < 3; k++) {
-          const akp = a[k][p], akq = a[k][q];
-          a[k][p] = c * akp - s * akq; a[k][q] = s * akp + c * akq;
-        }
-        for (let k = 0; k < 3; k++) {
-          const apk = a[p][k], aqk = a[q][k];
-          a[p][k] = c * apk - s * aqk; a[q][k] = s * apk + c * aqk;
-        }
-        for (let k = 0; k < 3; k++) {
-          const vkp = v[k][p], vkq = v[k][q];
-          v[k][p] = c * vkp - s * vkq; v[k][q] = s * vkp + c * vkq;
-        }
-      }
-    }
-  }
-  const order = [0, 1, 2].sort((i, j) => a[j][j] - a[i][i]);
-  return order.map((i) => [v[0][i], v[1][i], v[2][i]]);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -315,9 +205,10 @@ async function loadStoredGeometry(rec) {
   const key = `${rec.id}:${align}`;
   if (!geometryCache.has(key)) {
     const p = (async () => {
-      const resp = await api('GET', `/v1/shapes/${encodeURIComponent(rec.id)}/mesh`);
+      // The mesh as the server read it, as binary PLY: every format the server stores is drawn.
+      const resp = await api('GET', `/v1/shapes/${encodeURIComponent(rec.id)}/mesh?format=ply`);
       const bytes = new Uint8Array(await resp.arrayBuffer());
-      return normalizeGeometry(await parseMesh(bytes, rec.format || formatOf(rec.name || '', bytes)), align);
+      return readGeometry(bytes, 'ply', align, true);
     })();
     geometryCache.set(key, p);
     // A failed load (a 503, a network blip) is tried again next time, not kept.
@@ -497,7 +388,7 @@ async function searchUpload(file) {
     const align = $('align').checked;
     let parsed = null;
     const geometry = () => {
-      if (!parsed) parsed = parseMesh(bytes, format).then((g) => normalizeGeometry(g, align));
+      if (!parsed) parsed = readGeometry(bytes, format, align);
       return parsed.then((g) => g.clone());
     };
     current = { name: file.name, tags: [], id: null, geometry };
@@ -621,7 +512,12 @@ const cursors = [null]; // cursor of each page visited
 let pageIdx = 0;
 let nextCursor = null;
 
+// Each listing has a number; an answer to an earlier one is dropped (a slow page 2 must not
+// replace page 3, nor a listing before a delete the one after it).
+let listSeq = 0;
+
 async function refreshList() {
+  const seq = ++listSeq;
   const tag = $('tag-filter').value.trim();
   const cursor = cursors[pageIdx];
   const qs = new URLSearchParams({ limit: String(PAGE) });
@@ -629,6 +525,7 @@ async function refreshList() {
   if (tag) qs.set('tag', tag);
   try {
     const page = await getJson(`/v1/shapes?${qs}`);
+    if (seq !== listSeq) return;
     nextCursor = page.next_cursor;
     const ul = $('shape-list');
     ul.replaceChildren(...page.items.map(shapeRow));
@@ -641,10 +538,30 @@ async function refreshList() {
     $('prev').disabled = pageIdx === 0;
     $('next').disabled = !nextCursor;
   } catch (e) {
+    if (seq !== listSeq) return;
+    // The buttons were disabled while the page was asked for.
+    $('prev').disabled = pageIdx === 0;
+    $('next').disabled = !nextCursor;
     // A loading server: the index line says so, and lists again once it is ready.
     if (e.problem && e.problem.code === 'server.not_ready') return;
     showError(e);
   }
+}
+
+// Turning the page: the buttons stay disabled until the page has come (a second click on
+// "next" before it, a double click, would skip a page with the cursor of the one before).
+function turnPage(delta) {
+  if (delta > 0) {
+    if (!nextCursor) return;
+    cursors[pageIdx + 1] = nextCursor;
+  } else if (pageIdx === 0) {
+    return;
+  }
+  pageIdx += delta;
+  nextCursor = null;
+  $('prev').disabled = true;
+  $('next').disabled = true;
+  refreshList();
 }
 
 function shapeRow(rec) {
@@ -665,13 +582,21 @@ function shapeRow(rec) {
   del.textContent = 'delete';
   del.className = 'danger';
   del.dataset.testid = 'delete';
-  del.addEventListener('click', async () => {
+  let disarm = null;
+  del.addEventListener('click', async (ev) => {
+    // The second click of a double click neither arms nor confirms: the confirmation is a click
+    // of its own.
+    if (ev.detail > 1) return;
     if (del.dataset.armed !== '1') {
       del.dataset.armed = '1';
       del.textContent = 'sure?';
-      setTimeout(() => { del.dataset.armed = ''; del.textContent = 'delete'; }, 4000);
+      clearTimeout(disarm);
+      disarm = setTimeout(() => { del.dataset.armed = ''; del.textContent = 'delete'; }, 4000);
       return;
     }
+    clearTimeout(disarm);
+    del.dataset.armed = '';
+    del.disabled = true; // one DELETE, however often it is clicked meanwhile
     try {
       await api('DELETE', `/v1/shapes/${encodeURIComponent(rec.id)}`);
       showError(null);
@@ -681,6 +606,8 @@ function shapeRow(rec) {
       await refreshList();
       refreshIndexInfo();
     } catch (e) {
+      del.disabled = false;
+      del.textContent = 'delete';
       showError(e);
     }
   });
@@ -733,10 +660,8 @@ drop.addEventListener('drop', (e) => {
   const f = e.dataTransfer.files[0];
   if (f) searchUpload(f);
 });
-$('prev').addEventListener('click', () => { if (pageIdx > 0) { pageIdx--; refreshList(); } });
-$('next').addEventListener('click', () => {
-  if (nextCursor) { cursors[pageIdx + 1] = nextCursor; pageIdx++; refreshList(); }
-});
+$('prev').addEventListener('click', () => turnPage(-1));
+$('next').addEventListener('click', () => turnPage(1));
 let filterTimer;
 $('tag-filter').addEventListener('input', () => {
   clearTimeout(filterTimer);

@@ -1,5 +1,5 @@
-// A small OFF reader: OFF, COFF, NOFF, STOFF headers (counts on the header line or the next),
-// one vertex per line (extra columns ignored), one polygon per line (a trailing face colour
+// A small OFF reader: OFF, COFF, NOFF, CNOFF, NCOFF, STOFF headers (counts on the header line
+// or the next), one vertex per line (extra columns ignored), one polygon per line (a trailing face colour
 // ignored), polygons fan-triangulated, `#` comments.
 import { BufferGeometry, Float32BufferAttribute } from 'three';
 
@@ -11,7 +11,7 @@ export function parseOff(text) {
   }
   let li = 0;
   const head = lines[li++] || [];
-  if (!/^(ST)?C?N?4?OFF$/.test(head[0] || '')) throw new Error('OFF: missing OFF header');
+  if (!/^(ST)?(C|N|CN|NC)?4?OFF$/.test(head[0] || '')) throw new Error('OFF: missing OFF header');
   const counts = head.length >= 3 ? head.slice(1) : lines[li++] || [];
   const nv = parseInt(counts[0], 10);
   const nf = parseInt(counts[1], 10);

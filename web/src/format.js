@@ -1,0 +1,33 @@
+// The format of a mesh file, found as the server finds it (src/mesh/read/mod.rs, `sniff`):
+// the content first (GLB magic, a `ply` line, an OFF header, `solid` … `facet`, a JSON object
+// with "asset", a binary STL of exactly 84 + 50·n bytes, OBJ statements), then the extension.
+// A file the server reads is then read here too, whatever its name says.
+const OFF_HEADERS = ['OFF', 'COFF', 'NOFF', 'CNOFF', 'NCOFF'];
+
+export function formatOf(name, bytes) {
+  let start = 0;
+  if (bytes[0] === 0xef && bytes[1] === 0xbb && bytes[2] === 0xbf && !binaryStlSize(bytes)) start = 3;
+  const b = bytes.subarray(start);
+  const head = new TextDecoder('utf-8', { fatal: false }).decode(b.subarray(0, 4096));
+  if (head.startsWith('glTF')) return 'glb';
+  if (head.startsWith('ply\n') || head.startsWith('ply\r\n')) return 'ply';
+  const firstToken = head
+    .split(/\r?\n/)
+    .map((l) => l.split('#')[0].trim())
+    .find((l) => l.length > 0);
+  if (firstToken && OFF_HEADERS.includes(firstToken.split(/\s+/)[0])) return 'off';
+  const trimmed = head.trimStart();
+  if (trimmed.slice(0, 5).toLowerCase() === 'solid' && head.includes('facet')) return 'stl';
+  if (trimmed.startsWith('{') && new TextDecoder().decode(b).includes('"asset"')) return 'gltf';
+  if (binaryStlSize(b)) return 'stl';
+  if (/^[ \t]*(v|vn|vt|f|o|g|s|mtllib|usemtl)[ \t]/m.test(head)) return 'obj';
+  const ext = (name.split('.').pop() || '').toLowerCase();
+  if (ext === 'stla' || ext === 'stlb') return 'stl';
+  return ['obj', 'gltf', 'glb', 'ply', 'off', 'stl'].includes(ext) ? ext : 'obj';
+}
+
+function binaryStlSize(b) {
+  if (b.length < 84) return false;
+  const n = new DataView(b.buffer, b.byteOffset + 80, 4).getUint32(0, true);
+  return b.length === 84 + 50 * n;
+}
