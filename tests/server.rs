@@ -124,6 +124,17 @@ fn get(addr: SocketAddr, path: &str) -> Resp {
     http(addr, "GET", path, None, b"")
 }
 
+/// A GET with extra header lines (`"Name: value\r\n"` each).
+fn get_with(addr: SocketAddr, path: &str, headers: &str) -> Resp {
+    let mut s = TcpStream::connect(addr).expect("connect");
+    s.set_read_timeout(Some(Duration::from_secs(300))).ok();
+    let req = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{headers}\r\n");
+    s.write_all(req.as_bytes()).expect("write head");
+    let mut raw = Vec::new();
+    let _ = s.read_to_end(&mut raw);
+    parse_response(&raw)
+}
+
 fn post_json(addr: SocketAddr, path: &str, v: &Value) -> Resp {
     http(
         addr,
@@ -291,7 +302,24 @@ fn ingest_every_format_read_back_list_delete() {
                 back.area(),
                 mesh.area()
             );
+            // Revalidation: the same ETag is answered 304 without a body.
+            let tag = m.header("etag").expect("an ETag").to_string();
+            let again = get_with(
+                a,
+                &format!("/v1/shapes/{id}/mesh?format={}", to.name().to_uppercase()),
+                &format!("If-None-Match: {tag}\r\n"),
+            );
+            assert_eq!(again.status, 304, "{format} as {to}");
+            assert!(again.body.is_empty());
+            assert_eq!(again.header("etag"), Some(tag.as_str()));
         }
+        let tag = m.header("etag").expect("the original's ETag").to_string();
+        let again = get_with(
+            a,
+            &format!("/v1/shapes/{id}/mesh"),
+            &format!("If-None-Match: {tag}\r\n"),
+        );
+        assert_eq!(again.status, 304);
         ids.push((id, b));
     }
     // Idempotent: the same bytes again → 200, same id, nothing new.
@@ -1203,7 +1231,12 @@ fn bad_input_is_problem_json() {
         let detail = p["detail"].as_str().unwrap_or_default();
         assert!(detail.contains("unknown field"), "{path}: {detail}");
         // "expected one of `a`, `b`", or "expected `format`" where one name is accepted.
-        assert!(detail.contains("expected"), "{path}: {detail}");
+        let accepted = if path.contains("/mesh") {
+            "expected `format`"
+        } else {
+            "expected one of"
+        };
+        assert!(detail.contains(accepted), "{path}: {detail}");
     }
     // A format the mesh route cannot write is refused before the shape is looked up.
     let p = get(a, "/v1/shapes/0000000000000001/mesh?format=fbx").problem(400, "request.invalid");
@@ -1213,6 +1246,64 @@ fn bad_input_is_problem_json() {
     // Nothing was stored, and the server still answers.
     assert_eq!(get(a, "/v1/index").json()["shapes"], 0);
     assert_eq!(get(a, "/healthz").status, 200);
+    s.stop();
+}
+
+#[test]
+fn conversions_wait_their_turn_and_leave_the_queue_to_searches() {
+    // One worker and no queue: a search is refused whenever other work holds the lane. A page
+    // asks for two dozen conversions at once; they must neither be refused nor refuse searches.
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), GRACE_SECS, |c| {
+        c.workers = 1;
+        c.queue_capacity = 0;
+    });
+    let a = s.addr;
+    let r = ingest(
+        a,
+        "big",
+        "",
+        &bytes_of(&icosphere(5), Format::Obj),
+        "model/obj",
+    );
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let id = r.json()["id"].as_str().unwrap().to_string();
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let threads: Vec<_> = (0..12)
+        .map(|_| {
+            let (id, stop) = (id.clone(), stop.clone());
+            std::thread::spawn(move || {
+                let mut statuses = Vec::new();
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    statuses.push(get(a, &format!("/v1/shapes/{id}/mesh?format=obj")).status);
+                }
+                statuses
+            })
+        })
+        .collect();
+    let mut searches = Vec::new();
+    for _ in 0..20 {
+        let r = post_json(
+            a,
+            "/v1/search",
+            &serde_json::json!({"id": id, "rerank": []}),
+        );
+        searches.push(r.status);
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let conversions: Vec<u16> = threads
+        .into_iter()
+        .flat_map(|t| t.join().unwrap())
+        .collect();
+    assert!(searches.iter().all(|&c| c == 200), "searches: {searches:?}");
+    assert!(conversions.len() >= 12);
+    assert!(
+        conversions.iter().all(|&c| c == 200),
+        "conversions: {} of {} not 200",
+        conversions.iter().filter(|&&c| c != 200).count(),
+        conversions.len()
+    );
     s.stop();
 }
 

@@ -96,12 +96,6 @@ impl Cost {
         Cost(10 + (bytes / (32 << 10)).min(u32::MAX as usize / 2) as u32)
     }
 
-    /// Reading a stored original of `bytes` and writing the mesh again in another format
-    /// (1 unit per 512 KiB: text formats parse at roughly 50 MB/s on one core).
-    pub fn conversion(bytes: usize) -> Cost {
-        Cost(1 + (bytes / (512 << 10)).min(u32::MAX as usize / 2) as u32)
-    }
-
     /// The estimated cost of a search over `n` shapes: the scan, then each stage over the
     /// shortlist it actually receives (never more than the index holds).
     pub fn search(n: usize, stages: &[crate::search::Stage]) -> Cost {

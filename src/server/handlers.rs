@@ -346,11 +346,11 @@ pub async fn get_mesh(
     req: Request,
 ) -> Result<Response, ApiError> {
     let to = match params.format.as_deref() {
-        None => None,
+        None | Some("") => None,
         Some(f) => Some(
             Format::ALL
                 .into_iter()
-                .find(|x| x.name() == f)
+                .find(|x| x.name().eq_ignore_ascii_case(f))
                 .ok_or_else(|| {
                     ApiError::invalid(format!(
                         "format {f:?}: expected one of obj, gltf, glb, ply, off, stl"
@@ -364,29 +364,61 @@ pub async fn get_mesh(
         .await
         .map_err(ApiError::internal)?
         .ok_or_else(|| ApiError::not_found(&id))?;
-    let bytes = app
-        .store
-        .mesh(&id)
-        .await
-        .map_err(ApiError::internal)?
-        .ok_or_else(|| ApiError::not_found(&id))?;
-    let (mut resp, ext) = match to {
-        None => (bytes.into_response(), rec.format.as_str()),
-        Some(to) => {
-            let deadline = super::router::deadline_of(&req);
-            let out = app
-                .convert_original(bytes, &rec.format, to, deadline)
-                .await?;
-            (out.into_response(), to.name())
+    // An id's original never changes (ids follow the bytes' SHA-256), so the ETag is its hash,
+    // and for a conversion the format and the version of the writers too; a client that has
+    // it is answered 304 without the store being read or anything converted.
+    let etag = match to {
+        None => format!("\"{}\"", rec.sha256),
+        Some(to) => format!(
+            "\"{}-{}-{}\"",
+            rec.sha256,
+            to.name(),
+            env!("CARGO_PKG_VERSION")
+        ),
+    };
+    let fresh = req
+        .headers()
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"));
+    let ext: &str = match to {
+        Some(to) => to.name(),
+        None => &rec.format,
+    };
+    let mut resp = if fresh {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        match to {
+            None => {
+                let bytes = app
+                    .store
+                    .mesh(&id)
+                    .await
+                    .map_err(ApiError::internal)?
+                    .ok_or_else(|| ApiError::not_found(&id))?;
+                bytes.into_response()
+            }
+            Some(to) => {
+                let deadline = super::router::deadline_of(&req);
+                app.convert_original(&rec, to, deadline)
+                    .await?
+                    .into_response()
+            }
         }
     };
-    // Always octet-stream (the record's `format`/`content_type` name the format): a format type
-    // such as `model/gltf+json` would make clients parse the download as JSON.
+    // Always octet-stream (the record's `format`/`content_type` name the original's format): a
+    // format type such as `model/gltf+json` would make clients parse the download as JSON.
     let h = resp.headers_mut();
-    h.insert(
-        header::CONTENT_TYPE,
-        HeaderValue::from_static("application/octet-stream"),
-    );
+    if !fresh {
+        h.insert(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/octet-stream"),
+        );
+    }
+    if let Ok(v) = HeaderValue::from_str(&etag) {
+        h.insert(header::ETAG, v);
+    }
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
     if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{}.{ext}\"", rec.id)) {
         h.insert(header::CONTENT_DISPOSITION, v);
     }

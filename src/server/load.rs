@@ -68,6 +68,7 @@ impl App {
             request_timeout: std::time::Duration::from_secs_f64(cfg.request_timeout_secs),
         })?;
         let shard = cfg.shard_spec().map(super::shard::Sharding::new);
+        let conversions = Arc::new(tokio::sync::Semaphore::new(cfg.effective_workers().max(1)));
         let app = App {
             shard,
             admission,
@@ -83,6 +84,7 @@ impl App {
             writes: Arc::default(),
             metrics: m::handle(),
             cluster: None,
+            conversions,
         };
         app.record_specs()?;
         let loaded = app.load_signatures()?;

@@ -53,6 +53,9 @@ pub struct App {
     pub(super) cluster: Option<super::cluster::Cluster>,
     /// The shard this node holds (`--shard S/N`); `None`: the whole corpus.
     pub(super) shard: Option<super::shard::Sharding>,
+    /// Format conversions of stored originals ([`App::convert_original`]) running at once:
+    /// `workers` permits, apart from the admission lanes.
+    pub(super) conversions: Arc<tokio::sync::Semaphore>,
 }
 
 /// Per-stage milliseconds of one ingest or query analysis.
@@ -509,35 +512,56 @@ impl App {
         }
     }
 
-    /// The stored original `orig` of a shape whose record names `format`, read as a mesh and
-    /// written again as `to` (binary PLY, binary STL, glTF with an embedded buffer: the
-    /// writers' defaults): the surface every analysis of the shape starts from, triangulated,
-    /// every glTF primitive in one mesh, in a format the client chose. Admitted as CPU work
-    /// costing [`Cost::conversion`] of the original's size, so conversions wait in the lanes
-    /// like any other work and as many run at once (the memory of the parsed meshes is bounded
-    /// the same way).
+    /// The stored original of `rec`, read as a mesh and written again as `to` (binary PLY,
+    /// binary STL, glTF with an embedded buffer: the writers' defaults): the surface every
+    /// analysis of the shape starts from, triangulated, every glTF primitive in one mesh, in a
+    /// format the client chose.
+    ///
+    /// Conversions have a gate of their own, `workers` at once, and wait their turn until the
+    /// request's deadline (then 503 `request.timeout`); the original is read from the store
+    /// once its turn has come, so waiting requests hold no mesh. They stay out of the
+    /// admission lanes: a page that loads two dozen views at once must not fill the queue that
+    /// searches and ingests are refused by (a review found a scan-only search refused with 503
+    /// while 24 conversions queued in the cheap lane).
     pub async fn convert_original(
-        &self,
-        orig: Vec<u8>,
-        format: &str,
+        self: &Arc<Self>,
+        rec: &ShapeRecord,
         to: Format,
         deadline: Option<Instant>,
     ) -> Result<Vec<u8>, ApiError> {
-        let hint = Format::from_extension(format);
-        self.admission
-            .run(
-                Cost::conversion(orig.len()),
-                deadline,
-                move |_| -> Result<Vec<u8>, ApiError> {
-                    let mesh = read_mesh(&orig, hint, &ReadLimits::unlimited())
-                        .map_err(ApiError::internal)?;
-                    let mut out = Vec::new();
-                    crate::mesh::write::write_mesh(&mesh, to, &mut out)
-                        .map_err(ApiError::internal)?;
-                    Ok(out)
-                },
+        let timeout = || ApiError {
+            retry_after: Some(self.cfg.retry_after_secs),
+            ..ApiError::new(
+                axum::http::StatusCode::SERVICE_UNAVAILABLE,
+                "request.timeout",
+                "the conversion did not get its turn before the request's deadline",
             )
+        };
+        let permit = match deadline {
+            Some(d) => tokio::time::timeout_at(d.into(), self.conversions.clone().acquire_owned())
+                .await
+                .map_err(|_| timeout())?,
+            None => self.conversions.clone().acquire_owned().await,
+        }
+        .map_err(ApiError::internal)?;
+        let orig = self
+            .store
+            .mesh(&rec.id)
             .await
+            .map_err(ApiError::internal)?
+            .ok_or_else(|| ApiError::not_found(&rec.id))?;
+        let hint = Format::from_extension(&rec.format);
+        tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            let mesh =
+                read_mesh(&orig, hint, &ReadLimits::unlimited()).map_err(ApiError::internal)?;
+            drop(orig);
+            let mut out = Vec::new();
+            crate::mesh::write::write_mesh(&mesh, to, &mut out).map_err(ApiError::internal)?;
+            Ok(out)
+        })
+        .await
+        .map_err(ApiError::internal)?
     }
 
     /// Analyses an uploaded query mesh on the pool (nothing is stored); the re-ranking

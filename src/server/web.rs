@@ -66,6 +66,11 @@ const CSP: &str = "default-src 'self'; script-src 'self'; style-src 'self'; \
                    img-src 'self' data: blob:; connect-src 'self' data: blob:; \
                    object-src 'none'; base-uri 'none'; frame-ancestors 'none'";
 
+/// Content-Security-Policy of the mesh-reading worker: a worker takes its policy from its own
+/// response, not from the page, so without one a glTF naming an image elsewhere made the
+/// worker fetch it. It may read `data:`/`blob:` URLs and this origin, nothing else.
+const WORKER_CSP: &str = "default-src 'none'; connect-src 'self' data: blob:";
+
 fn etags() -> &'static [String; ASSETS.len()] {
     static TAGS: OnceLock<[String; ASSETS.len()]> = OnceLock::new();
     TAGS.get_or_init(|| {
@@ -97,10 +102,15 @@ fn serve(i: usize, headers: &HeaderMap) -> Response {
         header::X_CONTENT_TYPE_OPTIONS,
         HeaderValue::from_static("nosniff"),
     );
-    if i == 0 {
+    let csp = match a.path {
+        "/" => Some(CSP),
+        "/assets/parse-worker.js" => Some(WORKER_CSP),
+        _ => None,
+    };
+    if let Some(csp) = csp {
         h.insert(
             header::CONTENT_SECURITY_POLICY,
-            HeaderValue::from_static(CSP),
+            HeaderValue::from_static(csp),
         );
     }
     resp
@@ -165,5 +175,23 @@ mod tests {
         assert_eq!(serve(1, &h).status(), StatusCode::NOT_MODIFIED);
         h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("\"other\""));
         assert_eq!(serve(1, &h).status(), StatusCode::OK);
+    }
+
+    #[test]
+    fn the_page_and_the_worker_carry_their_own_security_policies() {
+        let csp = |i: usize| {
+            serve(i, &HeaderMap::new())
+                .headers()
+                .get(header::CONTENT_SECURITY_POLICY)
+                .map(|v| v.to_str().unwrap().to_string())
+        };
+        assert_eq!(csp(0).as_deref(), Some(CSP));
+        assert_eq!(ASSETS[3].path, "/assets/parse-worker.js");
+        assert_eq!(csp(3).as_deref(), Some(WORKER_CSP));
+        assert_eq!(
+            csp(1),
+            None,
+            "a script takes the policy of the page that loads it"
+        );
     }
 }

@@ -424,6 +424,26 @@ test('stored shapes are drawn whatever form the server read them from: glTF with
   await page.setInputFiles('#file', { name: 'upload.ply', mimeType: 'application/octet-stream', buffer: Buffer.from(`${obj}# again\n`) });
   await page.waitForFunction(() => document.querySelector('[data-testid=query-card] figcaption')?.textContent.includes('upload.ply'), null, { timeout: 120_000 });
   await waitRendered('[data-testid=query-card] .view', 1);
+  // An upload without scenes whose material names an image elsewhere: drawn by the page's own
+  // reader, and nothing is fetched from elsewhere (the worker has no image to load).
+  const textured = JSON.parse(JSON.stringify(gltf));
+  textured.images = [{ uri: 'http://example.invalid/texture.png' }];
+  textured.textures = [{ source: 0 }];
+  textured.materials = [{ pbrMetallicRoughness: { baseColorTexture: { index: 0 } } }];
+  textured.meshes[0].primitives[0].material = 0;
+  const requested = [];
+  const onRequest = (r) => requested.push(r.url());
+  page.context().on('request', onRequest);
+  const noHits = (route) => route.fulfill({
+    status: 200, contentType: 'application/json', body: JSON.stringify({ hits: [], candidates: 0, stages: [], timings: {} }),
+  });
+  await page.route('**/v1/search', noHits);
+  await page.setInputFiles('#file', { name: 'textured.gltf', mimeType: 'model/gltf+json', buffer: Buffer.from(JSON.stringify(textured)) });
+  await page.waitForFunction(() => document.querySelector('[data-testid=query-card] figcaption')?.textContent.includes('textured.gltf'), null, { timeout: 60_000 });
+  await waitRendered('[data-testid=query-card] .view', 1);
+  await page.unroute('**/v1/search', noHits);
+  page.context().off('request', onRequest);
+  assert.deepEqual(requested.filter((u) => !u.startsWith(URL_) && !u.startsWith('data:') && !u.startsWith('blob:')), []);
   await page.fill('#tag-filter', '');
   for (const id of ids) assert.equal((await fetch(`${URL_}/v1/shapes/${id}`, { method: 'DELETE' })).status, 204);
 });

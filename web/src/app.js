@@ -81,9 +81,10 @@ function meshWorker() {
       else p.resolve(data);
     };
     worker.onerror = (e) => {
-      // The worker itself failed (not a file it could not read): every request fails, and
-      // the next one starts a new worker.
+      // The worker itself failed (not a file it could not read): it is stopped, every request
+      // fails, and the next one starts a new worker.
       const err = new Error(`the mesh reader stopped: ${e.message || 'worker error'}`);
+      worker.terminate();
       for (const p of pending.values()) p.reject(err);
       pending.clear();
       worker = null;
@@ -206,9 +207,20 @@ async function loadStoredGeometry(rec) {
   if (!geometryCache.has(key)) {
     const p = (async () => {
       // The mesh as the server read it, as binary PLY: every format the server stores is drawn.
-      const resp = await api('GET', `/v1/shapes/${encodeURIComponent(rec.id)}/mesh?format=ply`);
-      const bytes = new Uint8Array(await resp.arrayBuffer());
-      return readGeometry(bytes, 'ply', align, true);
+      // (The answer has an ETag: asked again, e.g. for the other alignment, the browser's cache
+      // revalidates it and the server converts nothing.) A busy server is asked again after
+      // its Retry-After, twice.
+      const path = `/v1/shapes/${encodeURIComponent(rec.id)}/mesh?format=ply`;
+      for (let attempt = 0; ; attempt++) {
+        try {
+          const resp = await api('GET', path);
+          const bytes = new Uint8Array(await resp.arrayBuffer());
+          return await readGeometry(bytes, 'ply', align, true);
+        } catch (e) {
+          if (attempt >= 2 || !(e.problem && e.problem.status === 503)) throw e;
+          await new Promise((r) => setTimeout(r, 1000 * Math.min(10, e.retryAfter || 1)));
+        }
+      }
     })();
     geometryCache.set(key, p);
     // A failed load (a 503, a network blip) is tried again next time, not kept.
@@ -388,7 +400,11 @@ async function searchUpload(file) {
     const align = $('align').checked;
     let parsed = null;
     const geometry = () => {
-      if (!parsed) parsed = readGeometry(bytes, format, align);
+      if (!parsed) {
+        parsed = readGeometry(bytes, format, align);
+        // Read again next time if the reader failed (a stopped worker, say).
+        parsed.catch(() => { parsed = null; });
+      }
       return parsed.then((g) => g.clone());
     };
     current = { name: file.name, tags: [], id: null, geometry };
@@ -516,6 +532,8 @@ let nextCursor = null;
 // replace page 3, nor a listing before a delete the one after it).
 let listSeq = 0;
 
+/** Lists the current page: true when listed, false when the listing failed, null when a later
+ * listing overtook it. */
 async function refreshList() {
   const seq = ++listSeq;
   const tag = $('tag-filter').value.trim();
@@ -525,7 +543,7 @@ async function refreshList() {
   if (tag) qs.set('tag', tag);
   try {
     const page = await getJson(`/v1/shapes?${qs}`);
-    if (seq !== listSeq) return;
+    if (seq !== listSeq) return null;
     nextCursor = page.next_cursor;
     const ul = $('shape-list');
     ul.replaceChildren(...page.items.map(shapeRow));
@@ -537,31 +555,39 @@ async function refreshList() {
     $('page').textContent = `page ${pageIdx + 1}`;
     $('prev').disabled = pageIdx === 0;
     $('next').disabled = !nextCursor;
+    return true;
   } catch (e) {
-    if (seq !== listSeq) return;
+    if (seq !== listSeq) return null;
     // The buttons were disabled while the page was asked for.
     $('prev').disabled = pageIdx === 0;
     $('next').disabled = !nextCursor;
     // A loading server: the index line says so, and lists again once it is ready.
-    if (e.problem && e.problem.code === 'server.not_ready') return;
-    showError(e);
+    if (!(e.problem && e.problem.code === 'server.not_ready')) showError(e);
+    return false;
   }
 }
 
 // Turning the page: the buttons stay disabled until the page has come (a second click on
 // "next" before it, a double click, would skip a page with the cursor of the one before).
-function turnPage(delta) {
+// A page that could not be listed leaves the page shown as it was.
+async function turnPage(delta) {
   if (delta > 0) {
     if (!nextCursor) return;
     cursors[pageIdx + 1] = nextCursor;
   } else if (pageIdx === 0) {
     return;
   }
+  const [idx, next] = [pageIdx, nextCursor];
   pageIdx += delta;
   nextCursor = null;
   $('prev').disabled = true;
   $('next').disabled = true;
-  refreshList();
+  if ((await refreshList()) === false) {
+    pageIdx = idx;
+    nextCursor = next;
+    $('prev').disabled = pageIdx === 0;
+    $('next').disabled = !nextCursor;
+  }
 }
 
 function shapeRow(rec) {
@@ -599,6 +625,8 @@ function shapeRow(rec) {
     del.disabled = true; // one DELETE, however often it is clicked meanwhile
     try {
       await api('DELETE', `/v1/shapes/${encodeURIComponent(rec.id)}`);
+      // Gone from the list at once, whatever the listing below does.
+      li.remove();
       showError(null);
       setStatus(`deleted ${rec.name}`);
       for (const k of [...geometryCache.keys()]) if (k.startsWith(`${rec.id}:`)) geometryCache.delete(k);
@@ -665,6 +693,10 @@ $('next').addEventListener('click', () => turnPage(1));
 let filterTimer;
 $('tag-filter').addEventListener('input', () => {
   clearTimeout(filterTimer);
+  // The pages of the old filter are gone: no turning until the new first page has come.
+  $('prev').disabled = true;
+  $('next').disabled = true;
+  nextCursor = null;
   filterTimer = setTimeout(() => { cursors.length = 1; pageIdx = 0; refreshList(); }, 250);
 });
 $('compare-close').addEventListener('click', hideCompare);

@@ -20,10 +20,22 @@ export function formatOf(name, bytes) {
   if (trimmed.slice(0, 5).toLowerCase() === 'solid' && head.includes('facet')) return 'stl';
   if (trimmed.startsWith('{') && new TextDecoder().decode(b).includes('"asset"')) return 'gltf';
   if (binaryStlSize(b)) return 'stl';
-  if (/^[ \t]*(v|vn|vt|f|o|g|s|mtllib|usemtl)[ \t]/m.test(head)) return 'obj';
+  if (looksLikeObj(head)) return 'obj';
   const ext = (name.split('.').pop() || '').toLowerCase();
   if (ext === 'stla' || ext === 'stlb') return 'stl';
   return ['obj', 'gltf', 'glb', 'ply', 'off', 'stl'].includes(ext) ? ext : 'obj';
+}
+
+// The first statement that is not blank or a comment is an OBJ keyword with something after it.
+const OBJ_KEYWORDS = ['v', 'vt', 'vn', 'vp', 'f', 'o', 'g', 's', 'l', 'p', 'mtllib', 'usemtl'];
+function looksLikeObj(head) {
+  for (const line of head.split(/\r?\n/)) {
+    const t = line.trim();
+    if (!t || t.startsWith('#')) continue;
+    const kw = t.split(/\s+/)[0];
+    return OBJ_KEYWORDS.includes(kw) && t.length > kw.length;
+  }
+  return false;
 }
 
 function binaryStlSize(b) {

@@ -43,6 +43,38 @@ function mergeAll(geoms) {
   return out;
 }
 
+// Only positions are drawn: a glTF's images, textures and materials are dropped before the
+// loader sees them, so a file that names an image elsewhere makes no request for it.
+function geometryOnly(bytes, format) {
+  const strip = (json) => {
+    for (const k of ['images', 'textures', 'samplers', 'materials']) delete json[k];
+    for (const m of json.meshes || []) for (const p of m.primitives || []) delete p.material;
+    return json;
+  };
+  if (format === 'gltf') return JSON.stringify(strip(JSON.parse(new TextDecoder().decode(bytes))));
+  // GLB: a 12-byte header, the JSON chunk (length, "JSON", text), then the rest, kept as is.
+  const dv = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const JSON_CHUNK = 0x4e4f534a;
+  if (bytes.length < 20 || dv.getUint32(16, true) !== JSON_CHUNK) {
+    return bytes.buffer.slice(bytes.byteOffset, bytes.byteOffset + bytes.byteLength);
+  }
+  const jsonLen = dv.getUint32(12, true);
+  const json = strip(JSON.parse(new TextDecoder().decode(bytes.subarray(20, 20 + jsonLen))));
+  const text = new TextEncoder().encode(JSON.stringify(json));
+  const padded = (text.length + 3) & ~3;
+  const rest = bytes.subarray(20 + jsonLen);
+  const out = new Uint8Array(20 + padded + rest.length);
+  const o = new DataView(out.buffer);
+  out.set(bytes.subarray(0, 8)); // magic and version
+  o.setUint32(8, out.length, true);
+  o.setUint32(12, padded, true);
+  o.setUint32(16, JSON_CHUNK, true);
+  out.set(text, 20);
+  out.fill(0x20, 20 + text.length, 20 + padded);
+  out.set(rest, 20 + padded);
+  return out.buffer;
+}
+
 async function parseMesh(bytes, format) {
   const buf = bytes.buffer.slice(bytes.byteOffset, bytes.byteOffset + bytes.byteLength);
   let geoms;
@@ -61,7 +93,7 @@ async function parseMesh(bytes, format) {
       break;
     case 'gltf':
     case 'glb': {
-      const gltf = await new GLTFLoader().parseAsync(format === 'glb' ? buf : new TextDecoder().decode(bytes), '');
+      const gltf = await new GLTFLoader().parseAsync(geometryOnly(bytes, format), '');
       let scene = gltf.scene;
       if (!scene) {
         // A file without `scenes` is valid glTF: like the server, draw every root node (a node
