@@ -6,8 +6,9 @@
 //! see [`shapeseek::search::stage`]), or the short form `sgw:K[:key=value]…` with keys `m`
 //! (samples, default 100), `t` (comma-separated times, default 0.016,0.04,0.1), `metric`
 //! (`dist` | `kernel`), `rule` (`abs` | `lambda1`: `t = τ/λ₁`), `eps` (relative ε, default
-//! 0.003), `outer` (outer iterations, default 5), `blend` (weight `w` of the first-stage rank
-//! in a rank blend; absent: GW alone); or `recip:K[:key=value]…` with keys `k`
+//! 0.003), `outer` (outer iterations, default 5), `anchors` (1: also solve from two anchored
+//! starts, default 0), `blend` (weight `w` of the first-stage rank in a rank blend; absent: GW
+//! alone); or `recip:K[:key=value]…` with keys `k`
 //! (comma-separated neighbourhood sizes, default 8,16,32), `expand` (default 4) and `lambda`
 //! (default 0.1).
 
@@ -300,6 +301,7 @@ pub fn parse_stage(s: &str) -> Result<Vec<Stage>> {
             }
             "eps" => st.gw.eps_rel = num(val)?,
             "outer" => st.gw.outer_iterations = num(val)? as usize,
+            "anchors" => st.gw.anchored_starts = num(val)? != 0.0,
             "blend" => st.fusion = Fusion::RankBlend { weight: num(val)? },
             _ => return Err(bad(format!("unknown key {key}"))),
         }
@@ -353,8 +355,13 @@ mod tests {
             [Stage::SpectralGw(g)] => {
                 assert_eq!(g.shortlist, 50);
                 assert_eq!(g.gw.eps_rel, 0.01);
+                assert!(!g.gw.anchored_starts);
                 assert_eq!(g.fusion, Fusion::RankBlend { weight: 0.5 });
             }
+            other => panic!("{other:?}"),
+        }
+        match &parse_stage("sgw:20:anchors=1").unwrap()[..] {
+            [Stage::SpectralGw(g)] => assert!(g.gw.anchored_starts),
             other => panic!("{other:?}"),
         }
         let r = parse_stage("recip:100:k=4,8:expand=2:lambda=0.3").unwrap();

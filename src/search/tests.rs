@@ -729,6 +729,19 @@ fn stage_forms() {
             .shortlist(),
         100
     );
+    // The GW stage's anchored starts: off unless asked for.
+    for (v, want) in [
+        (serde_json::json!({"stage": "spectral_gw"}), false),
+        (
+            serde_json::json!({"stage": "spectral_gw", "anchored_starts": true}),
+            true,
+        ),
+    ] {
+        match resolve(v).unwrap() {
+            Stage::SpectralGw(g) => assert_eq!(g.gw.anchored_starts, want),
+            other => panic!("{other:?}"),
+        }
+    }
     for bad in [
         serde_json::json!({"stage": "exact", "shortlist": 101}),
         serde_json::json!({"stage": "spectral_gw", "shortlist": 201}),
