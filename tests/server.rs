@@ -312,6 +312,14 @@ fn ingest_every_format_read_back_list_delete() {
             assert_eq!(again.status, 304, "{format} as {to}");
             assert!(again.body.is_empty());
             assert_eq!(again.header("etag"), Some(tag.as_str()));
+            // A weak form of the tag matches too (RFC 9110); another format's does not.
+            let weak = format!("If-None-Match: \"x\", W/{tag}\r\n");
+            let path = format!("/v1/shapes/{id}/mesh?format={to}");
+            assert_eq!(get_with(a, &path, &weak).status, 304);
+            let other = if to == Format::Ply { "stl" } else { "ply" };
+            let path = format!("/v1/shapes/{id}/mesh?format={other}");
+            let r = get_with(a, &path, &format!("If-None-Match: {tag}\r\n"));
+            assert_eq!(r.status, 200, "{format} as {other} with the tag of {to}");
         }
         let tag = m.header("etag").expect("the original's ETag").to_string();
         let again = get_with(

@@ -223,7 +223,7 @@ pub enum StageRequest {
         #[serde(default)]
         outer_iterations: Option<usize>,
         /// Also solve from two anchored starts and keep the lowest energy (default false;
-        /// about 2.5× the time; see [`GwOptions::anchored_starts`]).
+        /// 2–5× the time; see [`GwOptions::anchored_starts`]).
         #[serde(default)]
         anchored_starts: Option<bool>,
         /// Weight of the previous stage's rank in a rank blend (`w·rank_prev + (1−w)·rank_gw`,

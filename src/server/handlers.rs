@@ -364,23 +364,21 @@ pub async fn get_mesh(
         .await
         .map_err(ApiError::internal)?
         .ok_or_else(|| ApiError::not_found(&id))?;
-    // An id's original never changes (ids follow the bytes' SHA-256), so the ETag is its hash,
-    // and for a conversion the format and the version of the writers too; a client that has
-    // it is answered 304 without the store being read or anything converted.
+    // An id's stored original is never replaced and an id is never reused, so the upload's
+    // SHA-256 in the record names the bytes for good; a conversion also depends on the readers
+    // and writers, so its tag adds the format and the fingerprint of the sources this binary
+    // was built from. A client that has the tag is answered 304 without the store being read
+    // or anything converted.
     let etag = match to {
         None => format!("\"{}\"", rec.sha256),
         Some(to) => format!(
             "\"{}-{}-{}\"",
             rec.sha256,
             to.name(),
-            env!("CARGO_PKG_VERSION")
+            env!("SHAPESEEK_SOURCE_FINGERPRINT")
         ),
     };
-    let fresh = req
-        .headers()
-        .get(header::IF_NONE_MATCH)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"));
+    let fresh = super::if_none_match(req.headers(), &etag);
     let ext: &str = match to {
         Some(to) => to.name(),
         None => &rec.format,

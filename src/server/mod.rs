@@ -71,6 +71,18 @@ pub(crate) fn ms(t: std::time::Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
+/// True when a request's `If-None-Match` names `etag` (a strong tag in quotes) or `*`: the
+/// weak comparison of RFC 9110 (a `W/` prefix ignored), over every such header line.
+pub(crate) fn if_none_match(headers: &axum::http::HeaderMap, etag: &str) -> bool {
+    headers
+        .get_all(axum::http::header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .map(|t| t.trim())
+        .any(|t| t == "*" || t.strip_prefix("W/").unwrap_or(t) == etag)
+}
+
 /// Installs a tracing subscriber (RUST_LOG or `info`), text or JSON. No-op if one is set.
 pub fn init_tracing(format: &str) {
     use tracing_subscriber::EnvFilter;

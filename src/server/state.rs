@@ -519,7 +519,8 @@ impl App {
     ///
     /// Conversions have a gate of their own, `workers` at once, and wait their turn until the
     /// request's deadline (then 503 `request.timeout`); the original is read from the store
-    /// once its turn has come, so waiting requests hold no mesh. They stay out of the
+    /// once its turn has come, so waiting requests hold no mesh. An abandoned conversion (the
+    /// deadline passed, the client left) stops before it parses or before it writes. They stay out of the
     /// admission lanes: a page that loads two dozen views at once must not fill the queue that
     /// searches and ingests are refused by (a review found a scan-only search refused with 503
     /// while 24 conversions queued in the cheap lane).
@@ -551,17 +552,24 @@ impl App {
             .map_err(ApiError::internal)?
             .ok_or_else(|| ApiError::not_found(&rec.id))?;
         let hint = Format::from_extension(&rec.format);
-        tokio::task::spawn_blocking(move || {
+        // Abandoned (the deadline passed, or the client left and the request's future was
+        // dropped): the conversion stops before it reads or before it writes.
+        let (cancel, guard) = Cancel::for_request(deadline);
+        let out = tokio::task::spawn_blocking(move || {
             let _permit = permit;
+            cancel.check()?;
             let mesh =
                 read_mesh(&orig, hint, &ReadLimits::unlimited()).map_err(ApiError::internal)?;
             drop(orig);
+            cancel.check()?;
             let mut out = Vec::new();
             crate::mesh::write::write_mesh(&mesh, to, &mut out).map_err(ApiError::internal)?;
             Ok(out)
         })
         .await
-        .map_err(ApiError::internal)?
+        .map_err(ApiError::internal)?;
+        guard.done();
+        out
     }
 
     /// Analyses an uploaded query mesh on the pool (nothing is stored); the re-ranking

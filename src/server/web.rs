@@ -84,10 +84,7 @@ fn etags() -> &'static [String; ASSETS.len()] {
 fn serve(i: usize, headers: &HeaderMap) -> Response {
     let a = &ASSETS[i];
     let etag = &etags()[i];
-    let fresh = headers
-        .get(header::IF_NONE_MATCH)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"));
+    let fresh = super::if_none_match(headers, etag);
     let mut resp = if fresh {
         StatusCode::NOT_MODIFIED.into_response()
     } else {

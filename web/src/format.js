@@ -3,6 +3,8 @@
 // with "asset", a binary STL of exactly 84 + 50·n bytes, OBJ statements), then the extension.
 // A file the server reads is then read here too, whatever its name says.
 const OFF_HEADERS = ['OFF', 'COFF', 'NOFF', 'CNOFF', 'NCOFF'];
+// ASCII whitespace, as Rust's `split_ascii_whitespace` (not a no-break space).
+const ASCII_SPACE = /[ \t\n\f\r]+/;
 
 export function formatOf(name, bytes) {
   let start = 0;
@@ -15,7 +17,7 @@ export function formatOf(name, bytes) {
     .split(/\r?\n/)
     .map((l) => l.split('#')[0].trim())
     .find((l) => l.length > 0);
-  if (firstToken && OFF_HEADERS.includes(firstToken.split(/\s+/)[0])) return 'off';
+  if (firstToken && OFF_HEADERS.includes(firstToken.split(ASCII_SPACE)[0])) return 'off';
   const trimmed = head.trimStart();
   if (trimmed.slice(0, 5).toLowerCase() === 'solid' && head.includes('facet')) return 'stl';
   if (trimmed.startsWith('{') && new TextDecoder().decode(b).includes('"asset"')) return 'gltf';
@@ -32,7 +34,7 @@ function looksLikeObj(head) {
   for (const line of head.split(/\r?\n/)) {
     const t = line.trim();
     if (!t || t.startsWith('#')) continue;
-    const kw = t.split(/\s+/)[0];
+    const kw = t.split(ASCII_SPACE)[0];
     return OBJ_KEYWORDS.includes(kw) && t.length > kw.length;
   }
   return false;
