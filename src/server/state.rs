@@ -520,10 +520,10 @@ impl App {
     /// Conversions have a gate of their own, `workers` at once, and wait their turn until the
     /// request's deadline (then 503 `request.timeout`); the original is read from the store
     /// once its turn has come, so waiting requests hold no mesh. An abandoned conversion (the
-    /// deadline passed, the client left) stops before it parses or before it writes. They stay out of the
-    /// admission lanes: a page that loads two dozen views at once must not fill the queue that
-    /// searches and ingests are refused by (a review found a scan-only search refused with 503
-    /// while 24 conversions queued in the cheap lane).
+    /// deadline passed, the client left) stops before it parses or before it writes. They
+    /// stay out of the admission lanes: a page that loads two dozen views at once must not
+    /// fill the queue that searches and ingests are refused by (a review found a scan-only
+    /// search refused with 503 while 24 conversions queued in the cheap lane).
     pub async fn convert_original(
         self: &Arc<Self>,
         rec: &ShapeRecord,

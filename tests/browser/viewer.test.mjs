@@ -441,6 +441,24 @@ test('stored shapes are drawn whatever form the server read them from: glTF with
   await page.setInputFiles('#file', { name: 'textured.gltf', mimeType: 'model/gltf+json', buffer: Buffer.from(JSON.stringify(textured)) });
   await page.waitForFunction(() => document.querySelector('[data-testid=query-card] figcaption')?.textContent.includes('textured.gltf'), null, { timeout: 60_000 });
   await waitRendered('[data-testid=query-card] .view', 1);
+  // The same as GLB (its JSON chunk rewritten by the page's reader, the binary chunk kept).
+  const glb = Buffer.from(await (await fetch(`${URL_}/v1/shapes/${rec.id}/mesh?format=glb`)).arrayBuffer());
+  const jsonLen = glb.readUInt32LE(12);
+  const glbJson = JSON.parse(glb.subarray(20, 20 + jsonLen).toString('utf8'));
+  Object.assign(glbJson, { images: textured.images, textures: textured.textures, materials: textured.materials });
+  glbJson.meshes[0].primitives[0].material = 0;
+  let text = Buffer.from(JSON.stringify(glbJson));
+  text = Buffer.concat([text, Buffer.alloc((4 - (text.length % 4)) % 4, 0x20)]);
+  const header = Buffer.alloc(20);
+  header.write('glTF', 0);
+  header.writeUInt32LE(2, 4);
+  header.writeUInt32LE(20 + text.length + glb.length - 20 - jsonLen, 8);
+  header.writeUInt32LE(text.length, 12);
+  header.writeUInt32LE(0x4e4f534a, 16);
+  const texturedGlb = Buffer.concat([header, text, glb.subarray(20 + jsonLen)]);
+  await page.setInputFiles('#file', { name: 'textured.glb', mimeType: 'model/gltf-binary', buffer: texturedGlb });
+  await page.waitForFunction(() => document.querySelector('[data-testid=query-card] figcaption')?.textContent.includes('textured.glb'), null, { timeout: 60_000 });
+  await waitRendered('[data-testid=query-card] .view', 1);
   await page.unroute('**/v1/search', noHits);
   page.context().off('request', onRequest);
   assert.deepEqual(requested.filter((u) => !u.startsWith(URL_) && !u.startsWith('data:') && !u.startsWith('blob:')), []);
