@@ -15,12 +15,14 @@
 //! product measure, a space with a symmetry (a torus, a sphere, a left–right symmetric body)
 //! keeps a coupling that mixes every symmetric image, so a shape's own copy can score above
 //! another shape (a finely meshed torus with itself 1.274, with a bumpy torus 0.800; the
-//! default payload, `rerank::tests::a_symmetric_shapes_own_copy_scores_lowest_with_anchored_starts`). Two more
+//! default payload; the test
+//! `rerank::tests::a_symmetric_shapes_own_copy_scores_lowest_with_anchored_starts`). Two more
 //! starts break the symmetry: each space's anchors are its most eccentric point and the point
 //! farthest from it, and the start pairs points by their distances to the two anchors (both
 //! orders of the second space's pair: either is the image of the first under some symmetry).
 //! The lowest final energy of the three solves is kept (that torus with itself 0.054). With a
 //! kernel payload the second anchor is the point least similar to the first.
+//!
 //! The Sinkhorn solver is the stabilised scaling algorithm (Schmitzer 2016): dual potentials
 //! `f, g` are kept in the log domain, the kernel `exp((f_i + g_j − M_ij)/ε)` is rebuilt whenever
 //! the scalings leave `[10⁻⁵⁰, 10⁵⁰]`, so small ε neither underflows nor overflows. Potentials
