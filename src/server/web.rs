@@ -6,8 +6,9 @@
 //! | path | what |
 //! | --- | --- |
 //! | `/`, `/index.html` | the page |
-//! | `/assets/app.js` | the bundle (the viewer + three.js's renderer and controls) |
+//! | `/assets/app.js` | the viewer (it imports `shared.js`) |
 //! | `/assets/parse-worker.js` | the worker that reads mesh files (three.js's loaders) |
+//! | `/assets/shared.js` | what both import: three.js's core, once |
 //! | `/assets/style.css` | the style sheet |
 //! | `/assets/THREE-LICENSE.txt` | three.js's licence |
 //!
@@ -32,7 +33,7 @@ pub struct Asset {
 }
 
 /// Every embedded file of the viewer.
-pub const ASSETS: [Asset; 5] = [
+pub const ASSETS: [Asset; 6] = [
     Asset {
         path: "/",
         content_type: "text/html; charset=utf-8",
@@ -54,6 +55,11 @@ pub const ASSETS: [Asset; 5] = [
         bytes: include_bytes!("../../web/dist/parse-worker.js"),
     },
     Asset {
+        path: "/assets/shared.js",
+        content_type: "text/javascript; charset=utf-8",
+        bytes: include_bytes!("../../web/dist/shared.js"),
+    },
+    Asset {
         path: "/assets/THREE-LICENSE.txt",
         content_type: "text/plain; charset=utf-8",
         bytes: include_bytes!("../../web/dist/THREE-LICENSE.txt"),
@@ -68,8 +74,9 @@ const CSP: &str = "default-src 'self'; script-src 'self'; style-src 'self'; \
 
 /// Content-Security-Policy of the mesh-reading worker: a worker takes its policy from its own
 /// response, not from the page, so without one a glTF naming an image elsewhere made the
-/// worker fetch it. It may read `data:`/`blob:` URLs and this origin, nothing else.
-const WORKER_CSP: &str = "default-src 'none'; connect-src 'self' data: blob:";
+/// worker fetch it. It may import scripts from this origin (`shared.js`) and read `data:`/`blob:`
+/// URLs and this origin, nothing else.
+const WORKER_CSP: &str = "default-src 'none'; script-src 'self'; connect-src 'self' data: blob:";
 
 fn etags() -> &'static [String; ASSETS.len()] {
     static TAGS: OnceLock<[String; ASSETS.len()]> = OnceLock::new();
@@ -146,19 +153,26 @@ mod tests {
             "no external URL"
         );
         let js = std::str::from_utf8(ASSETS[1].bytes).unwrap();
-        assert!(js.len() > 100_000, "the bundle includes three.js");
+        let shared = std::str::from_utf8(ASSETS[4].bytes).unwrap();
+        assert!(shared.len() > 100_000, "the shared chunk holds three.js");
+        let worker = std::str::from_utf8(ASSETS[3].bytes).unwrap();
+        for (name, code) in [("app.js", js), ("parse-worker.js", worker)] {
+            assert!(
+                code.contains("./shared.js"),
+                "{name} imports the shared chunk"
+            );
+        }
         assert!(
             !js.contains("import(\"http") && !js.contains("from\"http"),
             "no remote import"
         );
         // The page starts the mesh reader from the worker bundle's path, next to its own.
         assert!(js.contains("parse-worker.js"), "app.js starts the worker");
-        let worker = std::str::from_utf8(ASSETS[3].bytes).unwrap();
         assert!(
-            worker.contains("PLY"),
-            "the worker bundle holds the loaders"
+            worker.contains("binary_little_endian"),
+            "the worker bundle holds the loaders (PLY's among them)"
         );
-        let lic = std::str::from_utf8(ASSETS[4].bytes).unwrap();
+        let lic = std::str::from_utf8(ASSETS[5].bytes).unwrap();
         assert!(lic.contains("MIT License") && lic.contains("three.js authors"));
     }
 
