@@ -40,6 +40,16 @@ struct Loaded {
     recomputed: usize,
 }
 
+/// A stored original read as a mesh: its record's `format` is the hint, and no upload limit
+/// applies (the bytes passed them when stored). Recomputation and format conversions start here.
+pub(super) fn read_original(format: &str, bytes: &[u8]) -> crate::Result<crate::mesh::Mesh> {
+    read_mesh(
+        bytes,
+        Format::from_extension(format),
+        &ReadLimits::unlimited(),
+    )
+}
+
 impl App {
     /// Opens the state on `store`: records the specs, recomputes stale signatures, calibrates
     /// if needed (under the store's calibration lock), builds the scan. Blocking: call it on a
@@ -255,8 +265,7 @@ impl App {
             tracing::error!(id = %rec.id, "no original mesh to recompute from; skipped");
             return Ok(None);
         };
-        let hint = Format::from_extension(&rec.format);
-        let mesh = read_mesh(&orig, hint, &ReadLimits::unlimited())?;
+        let mesh = read_original(&rec.format, &orig)?;
         let (analysis, sig) = self.engine.sign(&mesh)?;
         rec.spec_key = self.engine.spec_key();
         // The payload depends on the same analysis (eigenpairs): refresh it too.

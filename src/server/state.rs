@@ -551,15 +551,14 @@ impl App {
             .await
             .map_err(ApiError::internal)?
             .ok_or_else(|| ApiError::not_found(&rec.id))?;
-        let hint = Format::from_extension(&rec.format);
         // Abandoned (the deadline passed, or the client left and the request's future was
         // dropped): the conversion stops before it reads or before it writes.
         let (cancel, guard) = Cancel::for_request(deadline);
+        let format = rec.format.clone();
         let out = tokio::task::spawn_blocking(move || {
             let _permit = permit;
             cancel.check()?;
-            let mesh =
-                read_mesh(&orig, hint, &ReadLimits::unlimited()).map_err(ApiError::internal)?;
+            let mesh = super::load::read_original(&format, &orig).map_err(ApiError::internal)?;
             drop(orig);
             cancel.check()?;
             let mut out = Vec::new();
