@@ -67,15 +67,33 @@ fn meshes(dir: &Path, count: usize, size: usize) -> Vec<PathBuf> {
 
 /// `GET path` on 127.0.0.1:`port`: the status and body, `None` when nothing answers.
 fn get(port: u16, path: &str) -> Option<(u16, String)> {
+    request(port, "GET", path)
+}
+
+/// A request without a body on 127.0.0.1:`port`: the status and the whole response (head and
+/// body, read until the server closes), `None` when nothing answers.
+fn request(port: u16, method: &str, path: &str) -> Option<(u16, String)> {
     use std::io::{Read, Write};
     let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
     c.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
-    c.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes())
-        .ok()?;
-    let mut raw = String::new();
-    c.read_to_string(&mut raw).ok()?;
+    c.write_all(
+        format!("{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes(),
+    )
+    .ok()?;
+    let mut raw = Vec::new();
+    c.read_to_end(&mut raw).ok()?;
+    let raw = String::from_utf8_lossy(&raw).into_owned();
     let code = raw.split(' ').nth(1)?.parse().ok()?;
     Some((code, raw))
+}
+
+/// The value of header `name` (lower case) in a raw response.
+fn header<'a>(raw: &'a str, name: &str) -> Option<&'a str> {
+    let head = raw.split("\r\n\r\n").next()?;
+    head.lines().skip(1).find_map(|l| {
+        let (k, v) = l.split_once(':')?;
+        k.eq_ignore_ascii_case(name).then(|| v.trim())
+    })
 }
 
 /// A running `shapeseek serve` on a free port of 127.0.0.1.
@@ -1001,4 +1019,76 @@ fn eval_that_leaves_shapes_out_says_so_and_exits_1() {
         "{}",
         o.stderr
     );
+}
+
+#[test]
+fn head_on_a_stored_mesh_answers_its_headers_without_converting() {
+    // A separate process, so that its /metrics counts only this test's conversions.
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("meshes");
+    meshes(&dir, 1, 2000);
+    let server = Server::start(&tmp.path().join("data"));
+    let port: u16 = server.url.rsplit(':').next().unwrap().parse().unwrap();
+    let o = run(&["ingest", "--url", &server.url, s(&dir)]);
+    assert_eq!(o.code, 0, "{}\n{}", o.stdout, o.stderr);
+    let (code, raw) = get(port, "/v1/shapes").unwrap();
+    assert_eq!(code, 200);
+    let body: Value = serde_json::from_str(raw.split("\r\n\r\n").nth(1).unwrap()).unwrap();
+    let rec = &body["items"][0];
+    let id = rec["id"].as_str().unwrap();
+    let conversions = || {
+        let (_, m) = get(port, "/metrics").unwrap();
+        m.lines()
+            .find(|l| l.starts_with("shapeseek_conversions_total"))
+            .map_or(0, |l| l.rsplit(' ').next().unwrap().parse::<u64>().unwrap())
+    };
+
+    // The original: its length from the record, its tag, no body.
+    let (code, head) = request(port, "HEAD", &format!("/v1/shapes/{id}/mesh")).unwrap();
+    assert_eq!(code, 200, "{head}");
+    let (_, full) = get(port, &format!("/v1/shapes/{id}/mesh")).unwrap();
+    assert_eq!(header(&head, "etag"), header(&full, "etag"));
+    assert_eq!(
+        header(&head, "content-length"),
+        Some(rec["bytes"].to_string().as_str())
+    );
+    assert_eq!(
+        header(&head, "content-length"),
+        header(&full, "content-length")
+    );
+    assert!(head.ends_with("\r\n\r\n"), "a body after HEAD: {head}");
+    // Every format: the conversion's tag and disposition, no length (only writing it would
+    // tell), no body, and nothing converted.
+    for f in ["obj", "off", "ply", "stl", "gltf", "glb"] {
+        let path = format!("/v1/shapes/{id}/mesh?format={f}");
+        let (code, head) = request(port, "HEAD", &path).unwrap();
+        assert_eq!(code, 200, "{f}: {head}");
+        assert!(head.ends_with("\r\n\r\n"), "{f}: a body after HEAD: {head}");
+        assert_eq!(header(&head, "content-length"), None, "{f}: {head}");
+        assert_eq!(header(&head, "transfer-encoding"), None, "{f}: {head}");
+        let disposition = format!("attachment; filename=\"{id}.{f}\"");
+        assert_eq!(
+            header(&head, "content-disposition"),
+            Some(disposition.as_str())
+        );
+        assert!(
+            header(&head, "etag").is_some_and(|t| t.contains(&format!("-{f}-"))),
+            "{f}: {head}"
+        );
+    }
+    assert_eq!(conversions(), 0, "a HEAD converted");
+    // A GET converts, once, under the tag HEAD gave.
+    let path = format!("/v1/shapes/{id}/mesh?format=ply");
+    let (_, head) = request(port, "HEAD", &path).unwrap();
+    let (code, full) = get(port, &path).unwrap();
+    assert_eq!(code, 200);
+    assert_eq!(header(&head, "etag"), header(&full, "etag"));
+    assert!(header(&full, "content-length").is_some());
+    assert_eq!(conversions(), 1);
+    // An unknown id or format is refused as by GET.
+    let (code, _) = request(port, "HEAD", "/v1/shapes/00000000000000ff/mesh").unwrap();
+    assert_eq!(code, 404);
+    let (code, _) = request(port, "HEAD", &format!("/v1/shapes/{id}/mesh?format=x3d")).unwrap();
+    assert_eq!(code, 400);
+    server.stop();
 }

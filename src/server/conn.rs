@@ -39,6 +39,7 @@ use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::Semaphore;
+use tower::ServiceExt;
 
 /// Limits of the accept loop.
 #[derive(Debug, Clone)]
@@ -87,7 +88,11 @@ pub async fn serve(
             tokio::spawn(refuse(stream, limits.retry_after_secs));
             continue;
         };
-        let service = TowerToHyperService::new(router.clone());
+        let service = TowerToHyperService::new(ServiceExt::<
+            axum::http::Request<hyper::body::Incoming>,
+        >::map_response(
+            router.clone(), length_unknown
+        ));
         let conn = http.serve_connection(TokioIo::new(ProblemIo::new(stream)), service);
         let conn = graceful.watch(conn);
         tokio::spawn(async move {
@@ -293,6 +298,21 @@ impl AsyncWrite for ProblemIo {
         // `automatic_response_problem` inspects.
         false
     }
+}
+
+/// Marks a response to `HEAD` whose length only generating the content would tell (a format
+/// conversion, `GET /v1/shapes/{id}/mesh?format=`): it leaves without `Content-Length` (RFC
+/// 9110 §9.3.2 allows leaving out what generating the content determines).
+#[derive(Debug, Clone, Copy)]
+pub struct LengthUnknown;
+
+/// axum gives every `HEAD` answer without a length the `Content-Length: 0` of the empty body it
+/// sends, which the `GET` would contradict; answers marked [`LengthUnknown`] leave without it.
+fn length_unknown(mut r: axum::response::Response) -> axum::response::Response {
+    if r.extensions().get::<LengthUnknown>().is_some() {
+        r.headers_mut().remove(axum::http::header::CONTENT_LENGTH);
+    }
+    r
 }
 
 #[cfg(test)]

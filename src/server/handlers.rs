@@ -339,6 +339,11 @@ pub struct MeshParams {
 /// `GET /v1/shapes/{id}/mesh`: the original upload, or with `?format=` the mesh read from it
 /// written in that format (a client then needs one reader whatever was uploaded; the web page
 /// asks for binary PLY).
+///
+/// `HEAD` answers the same status and headers without reading the original or converting it:
+/// the original's `Content-Length` is in its record; a conversion's length is known only once
+/// it is written, so a `HEAD` with `?format=` sends none (RFC 9110 §9.3.2 allows leaving out
+/// what only generating the content determines).
 pub async fn get_mesh(
     State(app): AppState,
     Path(id): Path<String>,
@@ -385,6 +390,22 @@ pub async fn get_mesh(
     };
     let mut resp = if fresh {
         StatusCode::NOT_MODIFIED.into_response()
+    } else if req.method() == axum::http::Method::HEAD {
+        match to {
+            None => {
+                let mut r = StatusCode::OK.into_response();
+                r.headers_mut()
+                    .insert(header::CONTENT_LENGTH, HeaderValue::from(rec.bytes));
+                r
+            }
+            // axum gives a HEAD answer the `Content-Length: 0` of its empty body, which GET
+            // contradicts; the connection's service drops it for answers marked so.
+            Some(_) => {
+                let mut r = StatusCode::OK.into_response();
+                r.extensions_mut().insert(super::conn::LengthUnknown);
+                r
+            }
+        }
     } else {
         match to {
             None => {
