@@ -25,8 +25,9 @@
 //! expensive job on one thread even when nothing else runs. So when `heavy_borrow` is set, the
 //! heavy threads are niced (`heavy_nice` > 0, Linux) and there are more workers than heavy
 //! threads, a second pool of `workers` threads at the same nice value exists, and a heavy job
-//! that starts while no other heavy job runs, no cheap job runs or waits and none has finished
-//! for [`BORROW_QUIET`] is run on it (counted in `shapeseek_heavy_jobs_borrowed_total`). The
+//! that starts while no other heavy job runs, no cheap job runs or waits, no format conversion
+//! runs ([`Admission::outside_work`]: conversions have their own gate, outside the lanes) and
+//! none of them has finished for [`BORROW_QUIET`] is run on it (counted in `shapeseek_heavy_jobs_borrowed_total`). The
 //! quiet period keeps a server with a steady stream of cheap searches from borrowing: there a
 //! cheap search would often find both cores taken by niced threads. The choice is made once,
 //! at start: a cheap job that arrives while such a job runs gets its core back from the
@@ -383,8 +384,11 @@ pub struct Admission {
     wide_pool: Option<Arc<rayon::ThreadPool>>,
     heavy_threads: usize,
     borrow_quiet: Duration,
-    /// When the last cheap job finished: milliseconds since `epoch` + 1 (0: none yet).
+    /// When the last cheap job (or work outside the lanes) finished: milliseconds since
+    /// `epoch` + 1 (0: none yet).
     last_cheap_done: Arc<AtomicU64>,
+    /// Work outside the lanes running now ([`Admission::outside_work`]).
+    outside_running: Arc<AtomicUsize>,
     epoch: Instant,
     retry_after: u64,
     request_timeout: Duration,
@@ -451,6 +455,7 @@ impl Admission {
             heavy_threads,
             borrow_quiet: c.borrow_quiet,
             last_cheap_done: Arc::new(AtomicU64::new(0)),
+            outside_running: Arc::new(AtomicUsize::new(0)),
             epoch: Instant::now(),
             borrowed: Arc::new(AtomicU64::new(0)),
             retry_after: c.retry_after,
@@ -472,9 +477,22 @@ impl Admission {
             .map_or(self.heavy_threads, |p| p.current_num_threads())
     }
 
+    /// Counts CPU work that runs outside the lanes (format conversions, which have a gate of
+    /// their own) until the guard is dropped: a heavy job does not borrow the cheap lane's
+    /// cores while such work runs or within `borrow_quiet` after it ended, as for a cheap job.
+    /// It holds no lane slot, so the lanes' wait estimates do not count it.
+    pub fn outside_work(&self) -> OutsideWork {
+        self.outside_running.fetch_add(1, Ordering::Relaxed);
+        OutsideWork {
+            running: self.outside_running.clone(),
+            done: self.last_cheap_done.clone(),
+            epoch: self.epoch,
+        }
+    }
+
     /// The pool of a heavy job that has just been counted as running: the wide pool when it
-    /// exists, no other heavy job runs, no cheap job runs or waits and none finished within
-    /// `borrow_quiet`; else the heavy pool.
+    /// exists, no other heavy job runs, no cheap job or work outside the lanes runs or waits
+    /// and none finished within `borrow_quiet`; else the heavy pool.
     fn heavy_pool_for_new_job(&self) -> Arc<rayon::ThreadPool> {
         if let Some(wide) = &self.wide_pool {
             let (cheap, heavy) = (&self.cheap.stats, &self.heavy.stats);
@@ -485,6 +503,7 @@ impl Admission {
             if heavy.running.load(Ordering::Relaxed) == 1
                 && cheap.running.load(Ordering::Relaxed) == 0
                 && cheap.queued.load(Ordering::Relaxed) == 0
+                && self.outside_running.load(Ordering::Relaxed) == 0
                 && quiet
             {
                 self.borrowed.fetch_add(1, Ordering::Relaxed);
@@ -626,6 +645,21 @@ impl Admission {
             .map_err(|e| ApiError::internal(format!("job failed: {e}")))?;
         guard.done = true;
         out
+    }
+}
+
+/// Work outside the lanes, counted while it lives ([`Admission::outside_work`]).
+pub struct OutsideWork {
+    running: Arc<AtomicUsize>,
+    done: Arc<AtomicU64>,
+    epoch: Instant,
+}
+
+impl Drop for OutsideWork {
+    fn drop(&mut self) {
+        // Marked before it stops counting, as a cheap job's end is.
+        self.done.store(mark_since(self.epoch), Ordering::Relaxed);
+        self.running.fetch_sub(1, Ordering::Relaxed);
     }
 }
 
@@ -832,6 +866,15 @@ mod tests {
         tokio::time::sleep(Duration::from_millis(250)).await;
         assert_eq!(width(a.clone()).await, 4);
         assert_eq!(a.borrowed.load(Ordering::Relaxed), 2);
+        // A conversion (work outside the lanes) running: the heavy pool; after it, as after a
+        // cheap job.
+        let outside = a.outside_work();
+        assert_eq!(width(a.clone()).await, 2);
+        drop(outside);
+        assert_eq!(width(a.clone()).await, 2);
+        tokio::time::sleep(Duration::from_millis(250)).await;
+        assert_eq!(width(a.clone()).await, 4);
+        assert_eq!(a.borrowed.load(Ordering::Relaxed), 3);
         // Another heavy job running: the second one gets the heavy pool.
         let (tx, first) = blocked(Cost(50));
         while a.heavy.stats.running.load(Ordering::Relaxed) < 1 {
@@ -840,7 +883,7 @@ mod tests {
         assert_eq!(width(a.clone()).await, 2);
         tx.send(()).unwrap();
         assert_eq!(first.await.unwrap().unwrap(), 4);
-        assert_eq!(a.borrowed.load(Ordering::Relaxed), 3);
+        assert_eq!(a.borrowed.load(Ordering::Relaxed), 4);
         // Switched off: never.
         let off = make(false);
         assert_eq!(off.borrow_threads(), 2);

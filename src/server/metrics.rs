@@ -59,6 +59,10 @@ fn describe() {
         "index size on disk (sled estimate)"
     );
     metrics::describe_gauge!("shapeseek_calibration_epoch", "current calibration epoch");
+    metrics::describe_counter!(
+        "shapeseek_conversions_total",
+        "stored originals written in another format (GET /v1/shapes/{id}/mesh?format=)"
+    );
 }
 
 /// Records one ingest stage duration.

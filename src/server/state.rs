@@ -523,7 +523,10 @@ impl App {
     /// deadline passed, the client left) stops before it parses or before it writes. They
     /// stay out of the admission lanes: a page that loads two dozen views at once must not
     /// fill the queue that searches and ingests are refused by (a review found a scan-only
-    /// search refused with 503 while 24 conversions queued in the cheap lane).
+    /// search refused with 503 while 24 conversions queued in the cheap lane). A running
+    /// conversion is counted by admission as work outside the lanes, so a heavy job does not
+    /// borrow the cheap lane's cores meanwhile; each is counted in
+    /// `shapeseek_conversions_total`.
     pub async fn convert_original(
         self: &Arc<Self>,
         rec: &ShapeRecord,
@@ -555,8 +558,11 @@ impl App {
         // dropped): the conversion stops before it reads or before it writes.
         let (cancel, guard) = Cancel::for_request(deadline);
         let format = rec.format.clone();
+        let counted = self.admission.outside_work();
+        metrics::counter!("shapeseek_conversions_total").increment(1);
         let out = tokio::task::spawn_blocking(move || {
             let _permit = permit;
+            let _counted = counted;
             cancel.check()?;
             let mesh = super::load::read_original(&format, &orig).map_err(ApiError::internal)?;
             drop(orig);
