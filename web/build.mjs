@@ -2,7 +2,7 @@
 //   app.js             web/src/app.js (the page), minified
 //   parse-worker.js    web/src/parse-worker.js (the mesh reader: three.js's loaders)
 //   shared.js          what both import (three.js's core), loaded once by each
-//   index.html, style.css   copied
+//   index.html, style.css, icon.svg   copied
 //   THREE-LICENSE.txt  three.js's licence (MIT), shipped with the bundle
 // Deterministic: the same lockfile gives the same bytes (CI rebuilds and diffs).
 import { build } from 'esbuild';
@@ -32,5 +32,6 @@ await build({
 });
 copyFileSync(join(here, 'src/index.html'), join(dist, 'index.html'));
 copyFileSync(join(here, 'src/style.css'), join(dist, 'style.css'));
+copyFileSync(join(here, 'src/icon.svg'), join(dist, 'icon.svg'));
 copyFileSync(join(here, 'node_modules/three/LICENSE'), join(dist, 'THREE-LICENSE.txt'));
 console.log(`built ${dist}`);

@@ -33,7 +33,7 @@ pub struct Asset {
 }
 
 /// Every embedded file of the viewer.
-pub const ASSETS: [Asset; 6] = [
+pub const ASSETS: [Asset; 7] = [
     Asset {
         path: "/",
         content_type: "text/html; charset=utf-8",
@@ -58,6 +58,11 @@ pub const ASSETS: [Asset; 6] = [
         path: "/assets/shared.js",
         content_type: "text/javascript; charset=utf-8",
         bytes: include_bytes!("../../web/dist/shared.js"),
+    },
+    Asset {
+        path: "/assets/icon.svg",
+        content_type: "image/svg+xml",
+        bytes: include_bytes!("../../web/dist/icon.svg"),
     },
     Asset {
         path: "/assets/THREE-LICENSE.txt",
@@ -142,20 +147,28 @@ pub fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
 mod tests {
     use super::*;
 
+    /// The embedded asset at `path`, as text.
+    fn text(path: &str) -> &'static str {
+        let a = ASSETS.iter().find(|a| a.path == path).expect(path);
+        std::str::from_utf8(a.bytes).unwrap()
+    }
+
     #[test]
     fn the_page_references_only_embedded_same_origin_assets() {
-        let html = std::str::from_utf8(ASSETS[0].bytes).unwrap();
-        for a in &ASSETS[1..3] {
-            assert!(html.contains(a.path), "index.html links {}", a.path);
+        let html = text("/");
+        for p in ["/assets/app.js", "/assets/style.css", "/assets/icon.svg"] {
+            assert!(html.contains(p), "index.html links {p}");
         }
+        // Its own icon: the browser asks for /favicon.ico otherwise, a 404 in the console.
+        assert!(text("/assets/icon.svg").starts_with("<svg xmlns=\"http://www.w3.org/2000/svg\""));
         assert!(
             !html.contains("http://") && !html.contains("https://"),
             "no external URL"
         );
-        let js = std::str::from_utf8(ASSETS[1].bytes).unwrap();
-        let shared = std::str::from_utf8(ASSETS[4].bytes).unwrap();
+        let js = text("/assets/app.js");
+        let shared = text("/assets/shared.js");
         assert!(shared.len() > 100_000, "the shared chunk holds three.js");
-        let worker = std::str::from_utf8(ASSETS[3].bytes).unwrap();
+        let worker = text("/assets/parse-worker.js");
         for (name, code) in [("app.js", js), ("parse-worker.js", worker)] {
             assert!(
                 code.contains("./shared.js"),
@@ -172,7 +185,7 @@ mod tests {
             worker.contains("binary_little_endian"),
             "the worker bundle holds the loaders (PLY's among them)"
         );
-        let lic = std::str::from_utf8(ASSETS[5].bytes).unwrap();
+        let lic = text("/assets/THREE-LICENSE.txt");
         assert!(lic.contains("MIT License") && lic.contains("three.js authors"));
     }
 

@@ -26,6 +26,8 @@ assert.ok(holdOut, `HOLD_OUT ${HOLD_OUT} is in the manifest`);
 let browser;
 let page;
 const consoleErrors = [];
+// Answers of 400 and above to requests outside the API (the page's own files, the icon).
+const failedPageRequests = [];
 
 before(async () => {
   browser = await chromium.launch({
@@ -37,6 +39,11 @@ before(async () => {
   page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
   page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
   page.on('pageerror', (e) => consoleErrors.push(String(e)));
+  page.on('response', (r) => {
+    if (r.status() >= 400 && r.url().startsWith(URL_) && !new URL(r.url()).pathname.startsWith('/v1/')) {
+      failedPageRequests.push(`${r.status()} ${r.url()}`);
+    }
+  });
   // The page must fetch nothing but its own origin.
   await page.route('**/*', (route) => {
     const u = route.request().url();
@@ -525,4 +532,7 @@ test('no script errors and no foreign requests', () => {
   // by the browser as failed resources; nothing else.
   const unexpected = consoleErrors.filter((e) => !/status of (4\d\d|503)/.test(e));
   assert.deepEqual(unexpected, []);
+  // Every file the page or the browser asked for was there (before the page named its icon,
+  // the browser's /favicon.ico request was a 404, hidden by the filter above).
+  assert.deepEqual(failedPageRequests, []);
 });
