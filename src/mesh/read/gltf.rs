@@ -10,16 +10,22 @@
 //! reachable from the default scene (else scene 0, else every root node), indexed or not, with
 //! the node transforms (matrix or TRS, composed down the hierarchy) applied in f64 and the
 //! winding flipped under mirroring transforms. `POINTS`/`LINES*` primitives are skipped. Positions
-//! must be `VEC3`/`FLOAT`; indices `u8`/`u16`/`u32`; byte strides honoured; sparse accessors and
-//! accessors without a buffer view are refused. A mesh instanced by several nodes is added once per
-//! instance.
+//! are `VEC3` of `FLOAT`, or of `BYTE`, `UNSIGNED_BYTE`, `SHORT` or `UNSIGNED_SHORT` (plain or
+//! normalized, as `KHR_mesh_quantization` allows); indices `u8`/`u16`/`u32`; byte strides
+//! honoured; sparse accessors and accessors without a buffer view are refused. A mesh instanced
+//! by several nodes is added once per instance.
+//!
+//! Required extensions: those that change only how a surface looks or moves (materials,
+//! textures, lights, animation, metadata) and `KHR_mesh_quantization` are read past; any other
+//! (Draco or meshopt compression, GPU instancing) is refused with its name, since the bytes of
+//! the geometry then mean something else.
 //!
 //! Declared lengths must agree with the data (else `mesh.inconsistent`, unless the read is
 //! lenient, which keeps the old behaviour and notes the repair): `asset.version` must be 2.x; a
 //! `data:` buffer must decode to exactly its `byteLength` and a GLB `BIN` chunk may exceed it
 //! only by the ≤ 3 bytes of alignment padding; a `TRIANGLES` primitive's index (or, unindexed,
 //! position) count must be a multiple of 3 (lenient: the trailing indices are ignored).
-//! Positions are f32 in glTF: they are widened exactly to f64.
+//! Positions are f32 (or dequantized to f32) in glTF: they are widened exactly to f64.
 
 use super::ReadLimits;
 use crate::error::{Error, Location, Result};
@@ -215,21 +221,55 @@ fn read_positions(
     buffers: &[Vec<u8>],
     bin: Option<&[u8]>,
 ) -> Result<Vec<[f32; 3]>> {
-    if acc.dimensions() != Dimensions::Vec3 || acc.data_type() != DataType::F32 {
+    let dt = acc.data_type();
+    if acc.dimensions() != Dimensions::Vec3 || dt == DataType::U32 {
         return Err(perr(format!(
-            "POSITION accessor {} must be VEC3 of FLOAT",
+            "POSITION accessor {} must be VEC3 of FLOAT (or, quantized, of BYTE, UNSIGNED_BYTE, \
+             SHORT or UNSIGNED_SHORT)",
             acc.index()
         )));
     }
     let (data, start, stride) = accessor_bytes(acc, buffers, bin, "POSITION")?;
-    let f = |o: usize| f32::from_le_bytes([data[o], data[o + 1], data[o + 2], data[o + 3]]);
+    // KHR_mesh_quantization: integer components, as integers or normalized (signed ones
+    // clamped at -1); the node transforms that exporters add to dequantize are applied later.
+    let normalized = acc.normalized();
+    let width = dt.size();
+    let c = |o: usize| -> f32 {
+        let (v, scale) = match dt {
+            DataType::F32 => {
+                return f32::from_le_bytes([data[o], data[o + 1], data[o + 2], data[o + 3]])
+            }
+            DataType::I8 => (data[o] as i8 as f32, 127.0),
+            DataType::U8 => (data[o] as f32, 255.0),
+            DataType::I16 => (i16::from_le_bytes([data[o], data[o + 1]]) as f32, 32767.0),
+            _ => (u16::from_le_bytes([data[o], data[o + 1]]) as f32, 65535.0),
+        };
+        if normalized {
+            (v / scale).max(-1.0)
+        } else {
+            v
+        }
+    };
     // Bounds were checked by accessor_bytes; count is bounded by the data size.
     Ok((0..acc.count())
         .map(|i| {
             let o = start + i * stride;
-            [f(o), f(o + 4), f(o + 8)]
+            [c(o), c(o + width), c(o + 2 * width)]
         })
         .collect())
+}
+
+/// Whether a required glTF extension leaves a file's geometry readable here: it changes only
+/// how the surface looks or moves (materials, textures, lights, animation, metadata), none of
+/// which is read, or it is `KHR_mesh_quantization`, whose integer positions
+/// [`read_positions`] reads. Anything else (compressed buffers, GPU instancing) changes what
+/// the bytes of the geometry mean.
+fn leaves_geometry_readable(ext: &str) -> bool {
+    ext == "KHR_mesh_quantization"
+        || ["_materials_", "_texture_", "_lights_"]
+            .iter()
+            .any(|p| ext.contains(p))
+        || matches!(ext, "KHR_animation_pointer" | "KHR_xmp_json_ld")
 }
 
 fn read_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>], bin: Option<&[u8]>) -> Result<Vec<u32>> {
@@ -271,6 +311,34 @@ fn read_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>], bin: Option<&[u8]>) -
 fn parse_document(json: &[u8]) -> Result<gltf::Document> {
     let mut root: gltf::json::Root = gltf::json::deserialize::from_slice(json)
         .map_err(|e| perr(format!("invalid glTF JSON: {e}")))?;
+    // Required extensions that leave the geometry readable are no obstacle (the validator
+    // refuses every one it was not built with). Any other leaves it unreadable, most often
+    // compressed buffers (Draco, meshopt): said plainly, before the validator's list of every
+    // accessor without data that it causes.
+    root.extensions_required
+        .retain(|e| !leaves_geometry_readable(e));
+    if let Some(ext) = root
+        .extensions_required
+        .iter()
+        .find(|e| !gltf::json::extensions::ENABLED_EXTENSIONS.contains(&e.as_str()))
+    {
+        let what = match ext.as_str() {
+            "KHR_draco_mesh_compression" => " (Draco-compressed geometry)",
+            "EXT_meshopt_compression" | "KHR_meshopt_compression" => {
+                " (meshopt-compressed buffers)"
+            }
+            _ => "",
+        };
+        return Err(perr(format!(
+            "the file requires the glTF extension {ext}{what}, which shapeseek does not read; \
+             export the mesh without it{}",
+            if what.is_empty() {
+                ""
+            } else {
+                " (uncompressed)"
+            }
+        )));
+    }
     let n_acc = root.accessors.len();
     for (m, mesh) in root.meshes.iter().enumerate() {
         for (p, prim) in mesh.primitives.iter().enumerate() {
@@ -605,6 +673,141 @@ mod tests {
                 ..
             })
         ));
+    }
+
+    #[test]
+    fn a_required_compression_extension_is_named() {
+        // A Draco-compressed tetrahedron as an exporter writes it: accessors without data, the
+        // geometry in the primitive's extension.
+        let doc = |ext: &str| {
+            format!(
+                r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["{ext}"],
+                "extensionsRequired":["{ext}"],
+                "buffers":[{{"byteLength":4}}],"bufferViews":[{{"buffer":0,"byteLength":4}}],
+                "accessors":[{{"componentType":5126,"count":4,"type":"VEC3",
+                  "min":[0,0,0],"max":[1,1,1]}},{{"componentType":5123,"count":12,"type":"SCALAR"}}],
+                "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,
+                  "extensions":{{"{ext}":{{"bufferView":0,"attributes":{{"POSITION":0}}}}}}}}]}}]}}"#
+            )
+        };
+        let err = |ext: &str| match parse_document(doc(ext).as_bytes()) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("{ext}: read"),
+        };
+        let e = err("KHR_draco_mesh_compression");
+        assert!(
+            e.contains("requires the glTF extension KHR_draco_mesh_compression (Draco-compressed"),
+            "{e}"
+        );
+        assert!(!e.contains("Missing data"), "{e}");
+        let e = err("EXT_meshopt_compression");
+        assert!(e.contains("(meshopt-compressed buffers)"), "{e}");
+        let e = err("EXT_mesh_gpu_instancing");
+        assert!(
+            e.contains("extension EXT_mesh_gpu_instancing, which shapeseek"),
+            "{e}"
+        );
+        // Ones that leave the geometry readable are no obstacle (the validator refused each).
+        for ext in [
+            "KHR_materials_unlit",
+            "KHR_materials_variants",
+            "KHR_texture_transform",
+            "KHR_texture_basisu",
+            "KHR_lights_punctual",
+            "KHR_mesh_quantization",
+        ] {
+            // The same document with its accessors' data where an uncompressed file has it.
+            let plain =
+                doc(ext).replace(r#"{"componentType""#, r#"{"bufferView":0,"componentType""#);
+            assert!(plain.contains(r#""bufferView":0,"componentType":5123"#));
+            let read = parse_document(plain.as_bytes());
+            assert!(read.is_ok(), "{ext}: {:?}", read.err());
+        }
+    }
+
+    /// A GLB of one tetrahedron whose positions are `comps` (four vertices × 3) stored as
+    /// `component_type` (4-byte-aligned stride), under a node with `node` as its JSON
+    /// transform, requiring `KHR_mesh_quantization`.
+    fn quantized_glb(component_type: u32, normalized: bool, comps: &[i64], node: &str) -> Vec<u8> {
+        let width: usize = match component_type {
+            5120 | 5121 => 1,
+            5122 | 5123 => 2,
+            _ => 4,
+        };
+        let stride = (3 * width).div_ceil(4) * 4;
+        let mut bin = Vec::new();
+        for v in comps.chunks(3) {
+            let mut elem = Vec::new();
+            for &c in v {
+                match width {
+                    1 => elem.push(c as u8),
+                    2 => elem.extend((c as u16).to_le_bytes()),
+                    _ => elem.extend((c as f32).to_le_bytes()),
+                }
+            }
+            elem.resize(stride, 0);
+            bin.extend(elem);
+        }
+        let pos_len = bin.len();
+        for i in [0u16, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3] {
+            bin.extend(i.to_le_bytes());
+        }
+        let json = format!(
+            r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["KHR_mesh_quantization"],
+            "extensionsRequired":["KHR_mesh_quantization"],
+            "buffers":[{{"byteLength":{}}}],
+            "bufferViews":[{{"buffer":0,"byteLength":{pos_len},"byteStride":{stride}}},
+              {{"buffer":0,"byteOffset":{pos_len},"byteLength":24}}],
+            "accessors":[{{"bufferView":0,"componentType":{component_type},"normalized":{normalized},
+              "count":4,"type":"VEC3","min":[0,0,0],"max":[1,1,1]}},
+              {{"bufferView":1,"componentType":5123,"count":12,"type":"SCALAR"}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+            "nodes":[{{"mesh":0,{node}}}],"scenes":[{{"nodes":[0]}}],"scene":0}}"#,
+            bin.len()
+        );
+        let mut json = json.into_bytes();
+        json.resize(json.len().div_ceil(4) * 4, b' ');
+        bin.resize(bin.len().div_ceil(4) * 4, 0);
+        glb(&[chunk(b"JSON", &json), chunk(b"BIN\0", &bin)])
+    }
+
+    #[test]
+    fn quantized_positions_are_dequantized_and_transformed() {
+        let limits = ReadLimits::default();
+        let corners = [
+            [1.0, 0.0, 0.0],
+            [3.0, 0.0, 0.0],
+            [1.0, 2.0, 0.0],
+            [1.0, 0.0, 2.0],
+        ];
+        // Normalized UNSIGNED_SHORT under the node's dequantizing scale and offset (as
+        // gltfpack writes): 65535 is 1.
+        let q = 65535;
+        let comps = [0, 0, 0, q, 0, 0, 0, q, 0, 0, 0, q];
+        let node = r#""scale":[2,2,2],"translation":[1,0,0]"#;
+        let m = read(&quantized_glb(5123, true, &comps, node), &limits).unwrap();
+        assert_eq!(m.vertices, corners);
+        assert_eq!(m.faces.len(), 4);
+        // Normalized BYTE: 127 is 1, and -128 is clamped to -1.
+        let comps = [0, 0, 0, 127, 0, 0, 0, 127, -128, 0, 0, 127];
+        let m = read(&quantized_glb(5120, true, &comps, r#""name":"n""#), &limits).unwrap();
+        assert_eq!(m.vertices[1], [1.0, 0.0, 0.0]);
+        assert_eq!(m.vertices[2], [0.0, 1.0, -1.0]);
+        // Plain SHORT and UNSIGNED_BYTE: the integers themselves.
+        let comps = [0, 0, 0, 2, 0, 0, 0, 2, 0, 0, 0, 2];
+        let half = r#""scale":[0.5,0.5,0.5]"#;
+        for ty in [5122, 5121] {
+            let m = read(&quantized_glb(ty, false, &comps, half), &limits).unwrap();
+            assert_eq!(m.vertices[3], [0.0, 0.0, 1.0], "component type {ty}");
+        }
+        // The same surface as FLOAT.
+        let comps = [1, 0, 0, 3, 0, 0, 1, 2, 0, 1, 0, 2];
+        let m = read(
+            &quantized_glb(5126, false, &comps, r#""name":"f""#),
+            &limits,
+        )
+        .unwrap();
+        assert_eq!(m.vertices, corners);
     }
 
     #[test]
