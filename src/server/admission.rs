@@ -27,9 +27,10 @@
 //! threads, a second pool of `workers` threads at the same nice value exists, and a heavy job
 //! that starts while no other heavy job runs, no cheap job runs or waits, no format conversion
 //! runs ([`Admission::outside_work`]: conversions have their own gate, outside the lanes) and
-//! none of them has finished for [`BORROW_QUIET`] is run on it (counted in `shapeseek_heavy_jobs_borrowed_total`). The
-//! quiet period keeps a server with a steady stream of cheap searches from borrowing: there a
-//! cheap search would often find both cores taken by niced threads. The choice is made once,
+//! none of them has finished for [`BORROW_QUIET`] is run on it (counted in
+//! `shapeseek_heavy_jobs_borrowed_total`). The quiet period keeps a server with a steady
+//! stream of cheap searches from borrowing: there a cheap search would often find both cores
+//! taken by niced threads. The choice is made once,
 //! at start: a cheap job that arrives while such a job runs gets its core back from the
 //! scheduler (a niced thread yields to a normal one), not from admission; heavy jobs that
 //! start meanwhile use the narrow pool. Background work on the heavy pool
@@ -491,21 +492,23 @@ impl Admission {
     }
 
     /// The pool of a heavy job that has just been counted as running: the wide pool when it
-    /// exists, no other heavy job runs, no cheap job or work outside the lanes runs or waits
-    /// and none finished within `borrow_quiet`; else the heavy pool.
+    /// exists, no other heavy job runs, no cheap job runs or waits, no work outside the lanes
+    /// runs, and none of them finished within `borrow_quiet`; else the heavy pool.
     fn heavy_pool_for_new_job(&self) -> Arc<rayon::ThreadPool> {
         if let Some(wide) = &self.wide_pool {
             let (cheap, heavy) = (&self.cheap.stats, &self.heavy.stats);
+            // The counts first, then the time of the last end: a job marks its end before it
+            // stops counting (a `Release` decrement), so a count read as 0 (`Acquire`) comes
+            // with that job's mark.
+            let idle = heavy.running.load(Ordering::Acquire) == 1
+                && cheap.running.load(Ordering::Acquire) == 0
+                && cheap.queued.load(Ordering::Acquire) == 0
+                && self.outside_running.load(Ordering::Acquire) == 0;
             let last = self.last_cheap_done.load(Ordering::Relaxed);
             let quiet = last == 0
                 || mark_since(self.epoch).saturating_sub(last)
                     >= self.borrow_quiet.as_millis() as u64;
-            if heavy.running.load(Ordering::Relaxed) == 1
-                && cheap.running.load(Ordering::Relaxed) == 0
-                && cheap.queued.load(Ordering::Relaxed) == 0
-                && self.outside_running.load(Ordering::Relaxed) == 0
-                && quiet
-            {
+            if idle && quiet {
                 self.borrowed.fetch_add(1, Ordering::Relaxed);
                 metrics::counter!("shapeseek_heavy_jobs_borrowed_total").increment(1);
                 return wide.clone();
@@ -649,6 +652,7 @@ impl Admission {
 }
 
 /// Work outside the lanes, counted while it lives ([`Admission::outside_work`]).
+#[must_use = "the work is counted only while the guard lives"]
 pub struct OutsideWork {
     running: Arc<AtomicUsize>,
     done: Arc<AtomicU64>,
@@ -659,7 +663,7 @@ impl Drop for OutsideWork {
     fn drop(&mut self) {
         // Marked before it stops counting, as a cheap job's end is.
         self.done.store(mark_since(self.epoch), Ordering::Relaxed);
-        self.running.fetch_sub(1, Ordering::Relaxed);
+        self.running.fetch_sub(1, Ordering::Release);
     }
 }
 
@@ -687,7 +691,9 @@ impl Drop for Counted {
         } else {
             (&self.stats.queued, &self.stats.queued_units)
         };
-        n.fetch_sub(1, Ordering::Relaxed);
+        // Release: a cheap job's end mark, stored before, is seen by whoever reads this count
+        // (`heavy_pool_for_new_job`).
+        n.fetch_sub(1, Ordering::Release);
         u.fetch_sub(self.units, Ordering::Relaxed);
     }
 }
@@ -817,7 +823,7 @@ mod tests {
                     queue_capacity: 4,
                     heavy_nice: 5,
                     heavy_borrow: borrow,
-                    borrow_quiet: Duration::from_millis(200),
+                    borrow_quiet: Duration::from_millis(400),
                     retry_after: 3,
                     request_timeout: Duration::from_secs(60),
                 })
@@ -861,9 +867,9 @@ mod tests {
         assert_eq!(width(a.clone()).await, 2);
         tx.send(()).unwrap();
         cheap.await.unwrap().unwrap();
-        // Just after it finished: still the heavy pool; once the lane was quiet 200 ms, all.
+        // Just after it finished: still the heavy pool; once the lane was quiet 400 ms, all.
         assert_eq!(width(a.clone()).await, 2);
-        tokio::time::sleep(Duration::from_millis(250)).await;
+        tokio::time::sleep(Duration::from_millis(450)).await;
         assert_eq!(width(a.clone()).await, 4);
         assert_eq!(a.borrowed.load(Ordering::Relaxed), 2);
         // A conversion (work outside the lanes) running: the heavy pool; after it, as after a
@@ -872,7 +878,7 @@ mod tests {
         assert_eq!(width(a.clone()).await, 2);
         drop(outside);
         assert_eq!(width(a.clone()).await, 2);
-        tokio::time::sleep(Duration::from_millis(250)).await;
+        tokio::time::sleep(Duration::from_millis(450)).await;
         assert_eq!(width(a.clone()).await, 4);
         assert_eq!(a.borrowed.load(Ordering::Relaxed), 3);
         // Another heavy job running: the second one gets the heavy pool.
