@@ -340,7 +340,7 @@ pub struct MeshParams {
 /// written in that format (a client then needs one reader whatever was uploaded; the web page
 /// asks for binary PLY).
 ///
-/// `HEAD` answers the same status and headers without reading the original or converting it:
+/// `HEAD` answers the headers a GET would send without reading the original or converting it:
 /// the original's `Content-Length` is in its record; a conversion's length is known only once
 /// it is written, so a `HEAD` with `?format=` sends none (RFC 9110 §9.3.2 allows leaving out
 /// what only generating the content determines).

@@ -61,7 +61,7 @@ fn describe() {
     metrics::describe_gauge!("shapeseek_calibration_epoch", "current calibration epoch");
     metrics::describe_counter!(
         "shapeseek_conversions_total",
-        "stored originals written in another format (GET /v1/shapes/{id}/mesh?format=)"
+        "stored originals written in another format (GET /v1/shapes/{id}/mesh?format=), counted once written"
     );
 }
 

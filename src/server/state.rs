@@ -525,7 +525,7 @@ impl App {
     /// fill the queue that searches and ingests are refused by (a review found a scan-only
     /// search refused with 503 while 24 conversions queued in the cheap lane). A running
     /// conversion is counted by admission as work outside the lanes, so a heavy job does not
-    /// borrow the cheap lane's cores meanwhile; each is counted in
+    /// borrow the cheap lane's cores meanwhile; each one written is counted in
     /// `shapeseek_conversions_total`.
     pub async fn convert_original(
         self: &Arc<Self>,
@@ -559,7 +559,6 @@ impl App {
         let (cancel, guard) = Cancel::for_request(deadline);
         let format = rec.format.clone();
         let counted = self.admission.outside_work();
-        metrics::counter!("shapeseek_conversions_total").increment(1);
         let out = tokio::task::spawn_blocking(move || {
             let _permit = permit;
             let _counted = counted;
@@ -569,6 +568,7 @@ impl App {
             cancel.check()?;
             let mut out = Vec::new();
             crate::mesh::write::write_mesh(&mesh, to, &mut out).map_err(ApiError::internal)?;
+            metrics::counter!("shapeseek_conversions_total").increment(1);
             Ok(out)
         })
         .await
