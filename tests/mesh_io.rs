@@ -859,6 +859,7 @@ fn gltf_malformed() {
         let e = read(&serde_json::to_vec(&v).unwrap(), None).unwrap_err();
         assert_eq!(e.code(), "mesh.external_reference", "{uri}: {e}");
         assert!(e.to_string().contains(uri));
+        assert!(e.to_string().contains("pack it as one .glb"), "{e}");
     }
     // Bad base64, invalid JSON.
     v["buffers"][0]["uri"] = "data:application/octet-stream;base64,@@@".into();

@@ -15,10 +15,11 @@
 //! honoured; sparse accessors and accessors without a buffer view are refused. A mesh instanced
 //! by several nodes is added once per instance.
 //!
-//! Required extensions: those that change only how a surface looks or moves (materials,
-//! textures, lights, animation, metadata) and `KHR_mesh_quantization` are read past; any other
-//! (Draco or meshopt compression, GPU instancing) is refused with its name, since the bytes of
-//! the geometry then mean something else.
+//! Required extensions: those that change only how a surface looks (materials, textures,
+//! lights), animation (`KHR_animation_pointer`), XMP metadata and `KHR_mesh_quantization` are
+//! read past (the `gltf` crate's `allow_empty_texture` lets a texture whose image is only in an
+//! extension pass its validator); any other (Draco or meshopt compression, GPU instancing) is
+//! refused with its name, since the bytes of the geometry may then mean something else.
 //!
 //! Declared lengths must agree with the data (else `mesh.inconsistent`, unless the read is
 //! lenient, which keeps the old behaviour and notes the repair): `asset.version` must be 2.x; a
@@ -259,17 +260,23 @@ fn read_positions(
         .collect())
 }
 
-/// Whether a required glTF extension leaves a file's geometry readable here: it changes only
-/// how the surface looks or moves (materials, textures, lights, animation, metadata), none of
-/// which is read, or it is `KHR_mesh_quantization`, whose integer positions
-/// [`read_positions`] reads. Anything else (compressed buffers, GPU instancing) changes what
-/// the bytes of the geometry mean.
+/// Whether a required glTF extension leaves a file's geometry readable here: after its vendor
+/// prefix its name says it changes only how the surface looks (`materials_`, `texture_`,
+/// `lights_`), or it is `KHR_animation_pointer` or `KHR_xmp_json_ld` (animation, XMP
+/// metadata), none of which is read; or it is `KHR_mesh_quantization`, whose integer positions
+/// [`read_positions`] reads. Anything else (compressed buffers, GPU instancing, levels of
+/// detail, structural metadata) may change what the bytes of the geometry mean.
 fn leaves_geometry_readable(ext: &str) -> bool {
-    ext == "KHR_mesh_quantization"
-        || ["_materials_", "_texture_", "_lights_"]
+    let looks = ext.split_once('_').is_some_and(|(_, name)| {
+        ["materials_", "texture_", "lights_"]
             .iter()
-            .any(|p| ext.contains(p))
-        || matches!(ext, "KHR_animation_pointer" | "KHR_xmp_json_ld")
+            .any(|p| name.starts_with(p))
+    });
+    looks
+        || matches!(
+            ext,
+            "KHR_mesh_quantization" | "KHR_animation_pointer" | "KHR_xmp_json_ld"
+        )
 }
 
 fn read_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>], bin: Option<&[u8]>) -> Result<Vec<u32>> {
@@ -329,14 +336,16 @@ fn parse_document(json: &[u8]) -> Result<gltf::Document> {
             }
             _ => "",
         };
+        // `gltf-transform copy` writes Draco- and meshopt-compressed files uncompressed (both
+        // checked with @gltf-transform/cli 4.5.1).
+        let how = if what.is_empty() {
+            "export the mesh without it"
+        } else {
+            "decompress it first, for example with `npx @gltf-transform/cli copy in.glb out.glb`"
+        };
         return Err(perr(format!(
             "the file requires the glTF extension {ext}{what}, which shapeseek does not read; \
-             export the mesh without it{}",
-            if what.is_empty() {
-                ""
-            } else {
-                " (uncompressed)"
-            }
+             {how}"
         )));
     }
     let n_acc = root.accessors.len();
@@ -469,7 +478,9 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
             }
             gltf::buffer::Source::Uri(uri) => {
                 return Err(Error::ExternalReference(format!(
-                    "buffer {} refers to {uri:?}",
+                    "buffer {} refers to {uri:?}; a glTF whose data is in other files cannot \
+                     be read alone: pack it as one .glb (for example `npx @gltf-transform/cli \
+                     copy scene.gltf scene.glb`) or embed its buffers",
                     b.index()
                 )))
             }
@@ -700,6 +711,7 @@ mod tests {
             "{e}"
         );
         assert!(!e.contains("Missing data"), "{e}");
+        assert!(e.contains("decompress it first"), "{e}");
         let e = err("EXT_meshopt_compression");
         assert!(e.contains("(meshopt-compressed buffers)"), "{e}");
         let e = err("EXT_mesh_gpu_instancing");
@@ -707,6 +719,7 @@ mod tests {
             e.contains("extension EXT_mesh_gpu_instancing, which shapeseek"),
             "{e}"
         );
+        assert!(e.contains("export the mesh without it"), "{e}");
         // Ones that leave the geometry readable are no obstacle (the validator refused each).
         for ext in [
             "KHR_materials_unlit",
@@ -723,6 +736,25 @@ mod tests {
             let read = parse_document(plain.as_bytes());
             assert!(read.is_ok(), "{ext}: {:?}", read.err());
         }
+        // A KTX2 texture, as gltfpack -tc writes it: the image only in the extension, so the
+        // texture has no `source` of its own (the validator's `allow_empty_texture`).
+        let mut v: serde_json::Value = serde_json::from_str(
+            &doc("KHR_texture_basisu")
+                .replace(r#"{"componentType""#, r#"{"bufferView":0,"componentType""#),
+        )
+        .unwrap();
+        v["images"] = serde_json::json!([{"uri": "textures/skin.ktx2", "mimeType": "image/ktx2"}]);
+        v["textures"] = serde_json::json!([{"extensions": {"KHR_texture_basisu": {"source": 0}}}]);
+        v["materials"] =
+            serde_json::json!([{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}]);
+        v["meshes"][0]["primitives"][0]["material"] = 0.into();
+        let read = parse_document(v.to_string().as_bytes());
+        assert!(read.is_ok(), "a KTX2 texture: {:?}", read.err());
+        // Names matched after the vendor prefix only.
+        assert!(!leaves_geometry_readable("EXT_mesh_texture_displacement"));
+        assert!(leaves_geometry_readable(
+            "ADOBE_materials_thin_transparency"
+        ));
     }
 
     /// A GLB of one tetrahedron whose positions are `comps` (four vertices × 3) stored as
