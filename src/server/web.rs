@@ -10,6 +10,7 @@
 //! | `/assets/parse-worker.js` | the worker that reads mesh files (three.js's loaders) |
 //! | `/assets/shared.js` | what both import: three.js's core, once |
 //! | `/assets/style.css` | the style sheet |
+//! | `/assets/icon.svg` | the page's icon |
 //! | `/assets/THREE-LICENSE.txt` | three.js's licence |
 //!
 //! Responses carry a strong `ETag` (content hash) and `Cache-Control: no-cache`, so browsers
