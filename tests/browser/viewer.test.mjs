@@ -6,7 +6,8 @@
 // (default /usr/bin/chromium).
 import { test, before, after } from 'node:test';
 import assert from 'node:assert/strict';
-import { readFileSync, mkdirSync } from 'node:fs';
+import { readFileSync, mkdirSync, mkdtempSync, writeFileSync } from 'node:fs';
+import { tmpdir } from 'node:os';
 import { join } from 'node:path';
 import { chromium } from 'playwright-core';
 
@@ -60,8 +61,8 @@ after(async () => {
 /** For each element matching `selector`: the fraction of its area where the WebGL canvas shows
  * something other than the view background, and the mean colour of those pixels. Reads the
  * canvas back (preserveDrawingBuffer) after forcing a frame. */
-async function viewPixels(selector) {
-  return page.evaluate((sel) => {
+async function viewPixels(selector, withMask = false) {
+  return page.evaluate(([sel, withMask]) => {
     window.shapeseekViewer.render();
     const gl = document.getElementById('gl');
     const ratio = gl.width / gl.clientWidth;
@@ -76,16 +77,20 @@ async function viewPixels(selector) {
       if (w <= 0 || h <= 0) return { fraction: 0, visible: false };
       const d = ctx.getImageData(x, y, w, h).data;
       let n = 0, sr = 0, sg = 0, sb = 0, bg = 0;
+      const mask = withMask ? new Array(w * h).fill(0) : null;
       for (let i = 0; i < d.length; i += 4) {
         // background #f7f9fc
         const dist = Math.abs(d[i] - 0xf7) + Math.abs(d[i + 1] - 0xf9) + Math.abs(d[i + 2] - 0xfc);
         if (d[i + 3] === 0) continue;
         bg++;
-        if (dist > 40) { n++; sr += d[i]; sg += d[i + 1]; sb += d[i + 2]; }
+        if (dist > 40) {
+          n++; sr += d[i]; sg += d[i + 1]; sb += d[i + 2];
+          if (mask) mask[i / 4] = 1;
+        }
       }
-      return { visible: true, painted: bg / (w * h), fraction: n / (w * h), mean: n ? [sr / n, sg / n, sb / n] : null };
+      return { visible: true, painted: bg / (w * h), fraction: n / (w * h), mean: n ? [sr / n, sg / n, sb / n] : null, mask };
     });
-  }, selector);
+  }, [selector, withMask]);
 }
 
 async function waitRendered(selector, count) {
@@ -525,6 +530,99 @@ test('a large upload is read off the main thread: the page keeps answering while
   // Before (read on the main thread): one task of about 1 000 ms in that window.
   assert.ok(longest < 250, `the main thread was blocked for ${longest.toFixed(0)} ms while the file was read`);
   await page.unroute('**/v1/search', noHits);
+});
+
+/** A float-position GLB (one mesh, one primitive, as `shapeseek samples` writes it) rewritten as
+ * gltfpack writes it by default: positions as normalized u16 in an 8-byte stride, the node's
+ * scale and translation undoing the quantization, `KHR_mesh_quantization` required. */
+function quantizeGlb(glb) {
+  const jsonLen = glb.readUInt32LE(12);
+  const json = JSON.parse(glb.subarray(20, 20 + jsonLen).toString('utf8'));
+  const bin = glb.subarray(20 + jsonLen + 8);
+  const prim = json.meshes[0].primitives[0];
+  const acc = json.accessors[prim.attributes.POSITION];
+  const view = json.bufferViews[acc.bufferView];
+  const at = (view.byteOffset || 0) + (acc.byteOffset || 0);
+  const stride = view.byteStride || 12;
+  const lo = acc.min;
+  const span = Math.max(...acc.max.map((x, k) => x - lo[k]));
+  const pos = Buffer.alloc(acc.count * 8);
+  for (let i = 0; i < acc.count; i++) {
+    for (let k = 0; k < 3; k++) {
+      const x = bin.readFloatLE(at + i * stride + 4 * k);
+      pos.writeUInt16LE(Math.round(((x - lo[k]) / span) * 65535), 8 * i + 2 * k);
+    }
+  }
+  const idx = json.accessors[prim.indices];
+  const iview = json.bufferViews[idx.bufferView];
+  const ibytes = bin.subarray(iview.byteOffset || 0, (iview.byteOffset || 0) + iview.byteLength);
+  const out = {
+    asset: { version: '2.0' },
+    extensionsUsed: ['KHR_mesh_quantization'],
+    extensionsRequired: ['KHR_mesh_quantization'],
+    buffers: [{ byteLength: pos.length + ibytes.length }],
+    bufferViews: [
+      { buffer: 0, byteLength: pos.length, byteStride: 8, target: 34962 },
+      { buffer: 0, byteOffset: pos.length, byteLength: ibytes.length, target: 34963 },
+    ],
+    accessors: [
+      { bufferView: 0, componentType: 5123, normalized: true, count: acc.count, type: 'VEC3', min: [0, 0, 0], max: [65535, 65535, 65535] },
+      { bufferView: 1, componentType: idx.componentType, count: idx.count, type: 'SCALAR' },
+    ],
+    meshes: [{ primitives: [{ attributes: { POSITION: 0 }, indices: 1 }] }],
+    nodes: [{ mesh: 0, scale: [span, span, span], translation: lo }],
+    scenes: [{ nodes: [0] }],
+    scene: 0,
+  };
+  let text = Buffer.from(JSON.stringify(out));
+  text = Buffer.concat([text, Buffer.alloc((4 - (text.length % 4)) % 4, 0x20)]);
+  let body = Buffer.concat([pos, ibytes]);
+  body = Buffer.concat([body, Buffer.alloc((4 - (body.length % 4)) % 4)]);
+  const chunk = (type, data) => {
+    const h = Buffer.alloc(8);
+    h.writeUInt32LE(data.length, 0);
+    h.write(type, 4, 'latin1');
+    return Buffer.concat([h, data]);
+  };
+  const chunks = Buffer.concat([chunk('JSON', text), chunk('BIN\0', body)]);
+  const head = Buffer.alloc(12);
+  head.write('glTF', 0, 'latin1');
+  head.writeUInt32LE(2, 4);
+  head.writeUInt32LE(12 + chunks.length, 8);
+  return Buffer.concat([head, chunks]);
+}
+
+test('a quantized glTF (KHR_mesh_quantization, as gltfpack writes it) is drawn as its float original', async () => {
+  const sample = manifest.find((m) => m.path.endsWith('.glb'));
+  assert.ok(sample, 'a GLB among the samples');
+  const dir = mkdtempSync(join(tmpdir(), 'quantized-'));
+  const quantized = join(dir, `${sample.id}-quantized.glb`);
+  writeFileSync(quantized, quantizeGlb(readFileSync(join(SAMPLES, sample.path))));
+  await page.goto(URL_ + '/');
+  await page.waitForFunction(() => document.querySelectorAll('#shape-list li[data-id]').length > 0);
+  const drawn = async (file) => {
+    const name = file.split('/').pop();
+    await page.setInputFiles('#file', file);
+    await page.waitForFunction((n) => document.querySelector('[data-testid=query-card] figcaption')?.textContent.includes(n)
+      && document.querySelectorAll('[data-testid=hit-card]').length > 0, name, { timeout: 120_000 });
+    await waitRendered('#grid .view', 2);
+    const [q] = await viewPixels('#grid .view', true);
+    const top = await page.$eval('[data-testid=hit-card] figcaption', (c) => c.children[1].textContent);
+    return { ...q, top };
+  };
+  const float = await drawn(join(SAMPLES, sample.path));
+  const quant = await drawn(quantized);
+  assert.equal(quant.mask.length, float.mask.length);
+  let both = 0, either = 0;
+  float.mask.forEach((f, i) => { both += f & quant.mask[i]; either += f | quant.mask[i]; });
+  const iou = both / either;
+  console.log(`${sample.id}: query view covered ${(100 * float.fraction).toFixed(1)}% as float, `
+    + `${(100 * quant.fraction).toFixed(1)}% quantized, overlap (IoU) ${iou.toFixed(3)}; top hits ${float.top}, ${quant.top}`);
+  // The same surface to 1/65535 of its size: the same picture. Before, positions were
+  // transformed in their u16 array and clamped to it: a box.
+  assert.ok(iou > 0.95, `the quantized file's drawing overlaps the float one's by ${iou.toFixed(3)}`);
+  // And the server read it as the same shape.
+  assert.equal(classOf[quant.top], sample.cls);
 });
 
 test('no script errors and no foreign requests', () => {

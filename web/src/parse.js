@@ -16,8 +16,18 @@ function geometriesOf(object) {
   const out = [];
   object.updateMatrixWorld(true);
   object.traverse((o) => {
-    if (o.isMesh && o.geometry) {
-      const g = o.geometry.clone();
+    if (o.isMesh && o.geometry && o.geometry.attributes.position) {
+      // Positions as f32 before the node's transform: quantized ones (KHR_mesh_quantization,
+      // e.g. normalized u16, often interleaved) would be clamped back into their integer range
+      // when transformed in place (a quantized figure was drawn as a box).
+      const p = o.geometry.attributes.position;
+      const f = new Float32Array(p.count * 3);
+      for (let i = 0; i < p.count; i++) {
+        f[3 * i] = p.getX(i); f[3 * i + 1] = p.getY(i); f[3 * i + 2] = p.getZ(i);
+      }
+      const g = new THREE.BufferGeometry();
+      g.setAttribute('position', new THREE.BufferAttribute(f, 3));
+      if (o.geometry.index) g.setIndex(o.geometry.index.clone());
       g.applyMatrix4(o.matrixWorld);
       out.push(g);
     }
