@@ -391,21 +391,19 @@ pub async fn get_mesh(
     let mut resp = if fresh {
         StatusCode::NOT_MODIFIED.into_response()
     } else if req.method() == axum::http::Method::HEAD {
+        let mut r = StatusCode::OK.into_response();
         match to {
             None => {
-                let mut r = StatusCode::OK.into_response();
                 r.headers_mut()
                     .insert(header::CONTENT_LENGTH, HeaderValue::from(rec.bytes));
-                r
             }
             // axum gives a HEAD answer the `Content-Length: 0` of its empty body, which GET
             // contradicts; the connection's service drops it for answers marked so.
             Some(_) => {
-                let mut r = StatusCode::OK.into_response();
                 r.extensions_mut().insert(super::conn::LengthUnknown);
-                r
             }
         }
+        r
     } else {
         match to {
             None => {
