@@ -93,7 +93,6 @@ impl App {
         };
         let digest: [u8; 32] = Sha256::digest(&up.bytes).into();
         if let Some(r) = self.existing(&digest).await? {
-            self.apply_insert(&r.id).await?;
             return Ok(Queued::Stored(Box::new(r)));
         }
         let hint = up.hint.map(|f| f.name().to_string());

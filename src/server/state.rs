@@ -334,13 +334,18 @@ impl App {
         Ok(res)
     }
 
-    /// The stored shape with this content hash, as an ingest answer (`created: false`).
+    /// The stored shape with this content hash, as an ingest answer (`created: false`), in
+    /// this node's scan when its shard is held here. An insert can store a shape and still
+    /// answer an error (a flush that failed after the commit, a commit whose acknowledgement
+    /// was lost): that ingest answered 500 and its shape never entered the scan; the retry
+    /// enters it ([`App::apply_insert`], a look-up when it is there).
     pub(super) async fn existing(
-        &self,
+        self: &Arc<Self>,
         digest: &[u8; 32],
     ) -> Result<Option<IngestResult>, ApiError> {
         if let Some(id) = self.store.id_for_hash(digest).await.map_err(storage)? {
             if let Some(rec) = self.store.get(&id).await.map_err(storage)? {
+                self.apply_insert(&id).await?;
                 return Ok(Some(IngestResult {
                     id,
                     created: false,
@@ -354,7 +359,7 @@ impl App {
     }
 
     fn ingest_blocking(
-        &self,
+        self: &Arc<Self>,
         up: Upload,
         digest: [u8; 32],
         t0: Instant,

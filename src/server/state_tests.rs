@@ -102,3 +102,44 @@ fn a_reconciliation_keeps_a_shape_stored_while_it_listed_the_store() {
     );
     assert_eq!(scan.len(), 3);
 }
+
+/// An insert that stored the shape and answered an error all the same (a flush that failed
+/// after the commit; on PostgreSQL, a commit whose acknowledgement was lost): the ingest
+/// answers 500 and the shape is not in the scan. The client's retry of the same bytes finds it
+/// stored and must leave it searchable (it answered 200 `created: false` and the shape stayed
+/// out of every search until the node restarted).
+#[test]
+fn a_retry_after_an_insert_that_stored_but_failed_makes_the_shape_searchable() {
+    let n = OnFaulty::start(2, |_| {});
+    let mesh = meshes()[3].clone();
+    n.faulty
+        .fail_after_insert
+        .store(true, std::sync::atomic::Ordering::SeqCst);
+    let e =
+        n.rt.block_on(n.app.ingest(upload(&mesh, "stored-anyway")))
+            .unwrap_err();
+    n.faulty
+        .fail_after_insert
+        .store(false, std::sync::atomic::Ordering::SeqCst);
+    assert_eq!(e.status.as_u16(), 500, "{}", e.detail);
+    assert_eq!(
+        n.app.scan.read().unwrap().len(),
+        2,
+        "the failed ingest's shape entered"
+    );
+    let r =
+        n.rt.block_on(n.app.ingest(upload(&mesh, "stored-anyway")))
+            .unwrap();
+    assert!(!r.created, "the first attempt stored it");
+    assert!(
+        n.app.scan.read().unwrap().position(&r.id).is_some(),
+        "{} is stored, answered 200, and is not in the scan",
+        r.id
+    );
+    let opts: SearchOptions = serde_json::from_value(serde_json::json!({
+        "id": r.id, "top_k": 2, "rerank": []
+    }))
+    .unwrap();
+    let hits = n.rt.block_on(n.app.search(opts, None, None)).unwrap();
+    assert_eq!(hits.candidates, 2, "the others, the query left out");
+}

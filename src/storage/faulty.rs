@@ -26,6 +26,9 @@ pub(crate) struct Faulty {
     pub on_signature_read: Mutex<Option<Arc<dyn Fn() + Send + Sync>>>,
     /// Called with the id after each insert that stored a new shape, before it returns.
     pub after_insert: Mutex<Option<IdHook>>,
+    /// An insert that stored a new shape answers an error all the same (a flush that failed
+    /// after the commit, a commit whose acknowledgement was lost).
+    pub fail_after_insert: AtomicBool,
     /// Called after each page of `list` was read, before it returns.
     pub after_list: Mutex<Option<Arc<dyn Fn() + Send + Sync>>>,
     /// Reads of a page of signatures (`scan_signatures`) fail.
@@ -45,6 +48,7 @@ impl Faulty {
             fail_scans: AtomicBool::new(false),
             on_signature_read: Mutex::new(None),
             after_insert: Mutex::new(None),
+            fail_after_insert: AtomicBool::new(false),
             after_list: Mutex::new(None),
             page_cap: AtomicUsize::new(0),
         }
@@ -105,6 +109,9 @@ impl ShapeStore for Faulty {
             let hook = self.after_insert.lock().unwrap().clone();
             if let Some(f) = hook {
                 f(id);
+            }
+            if self.fail_after_insert.load(Ordering::SeqCst) {
+                return Err(Faulty::injected("insert (stored all the same)"));
             }
         }
         Ok(out)
