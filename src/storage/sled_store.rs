@@ -65,6 +65,21 @@ impl SledStorage {
         blocking(move || f(&store)).await
     }
 
+    /// Runs `f` on the shape `id` names; a string that is no id names none (as PostgreSQL's
+    /// `key`), and `f` is not run: sled's keys are raw bytes, and an id followed by four more
+    /// bytes is the key of one of its pieces (read as the head of a value, it was "corrupt").
+    async fn on_id<T, F>(&self, id: &str, absent: T, f: F) -> Result<T>
+    where
+        T: Send + 'static,
+        F: FnOnce(&Store, &str) -> Result<T> + Send + 'static,
+    {
+        if parse_id(id).is_none() {
+            return Ok(absent);
+        }
+        let id = id.to_string();
+        self.run(move |s| f(s, &id)).await
+    }
+
     async fn read_calibration(&self) -> Result<Option<StoredCalibration>> {
         let raw = self.run(|s| s.calibration()).await?;
         raw.map(|b| decode_calibration(&b)).transpose()
@@ -212,13 +227,11 @@ impl ShapeStore for SledStorage {
     }
 
     async fn delete(&self, id: &str) -> Result<bool> {
-        let id = id.to_string();
-        self.run(move |s| s.delete(&id)).await
+        self.on_id(id, false, |s, id| s.delete(id)).await
     }
 
     async fn get(&self, id: &str) -> Result<Option<ShapeRecord>> {
-        let id = id.to_string();
-        self.run(move |s| s.get(&id)).await
+        self.on_id(id, None, |s, id| s.get(id)).await
     }
 
     async fn list(&self, after: Option<&str>, tag: Option<&str>, limit: usize) -> Result<Page> {
@@ -231,18 +244,15 @@ impl ShapeStore for SledStorage {
     }
 
     async fn signature(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        let id = id.to_string();
-        self.run(move |s| s.signature(&id)).await
+        self.on_id(id, None, |s, id| s.signature(id)).await
     }
 
     async fn mesh(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        let id = id.to_string();
-        self.run(move |s| s.mesh(&id)).await
+        self.on_id(id, None, |s, id| s.mesh(id)).await
     }
 
     async fn payload(&self, id: &str) -> Result<Option<Vec<u8>>> {
-        let id = id.to_string();
-        self.run(move |s| s.payload(&id)).await
+        self.on_id(id, None, |s, id| s.payload(id)).await
     }
 
     /// Not one transaction on sled (the public `Store` API has none covering payload and
