@@ -588,4 +588,48 @@ mod tests {
         assert!(e > epoch);
         assert_eq!(rows.len(), 6);
     }
+
+    /// A signature damaged on disk (sled's checksum of the value fails) is recomputed from its
+    /// original at the next start and stored again: the node serves every shape. Before, the
+    /// load failed on that one shape and `serve` exited.
+    #[test]
+    fn a_signature_damaged_on_disk_is_recomputed_at_load() {
+        let dir = tempfile::tempdir().unwrap();
+        let meshes = &meshes()[..3];
+        let (whole, damaged) = {
+            let rt = runtime();
+            let store = sled_store(dir.path(), &rt);
+            let first = Arc::new(node(dir.path(), &store, &rt));
+            for (i, m) in meshes.iter().enumerate() {
+                ingest(&first, &rt, m, &format!("s{i}"));
+            }
+            wait_idle(&first);
+            let whole = served(&first);
+            (whole.1.len(), whole.1[1].0.clone())
+        };
+        {
+            // One byte of the signature's first piece flipped (the key: id, then the piece's
+            // index as 4 bytes).
+            let db = crate::index::store::open_db(&dir.path().join("db")).unwrap();
+            let tree = db.open_tree(crate::index::store::SIGNATURE_CHUNKS).unwrap();
+            let mut key = damaged.as_bytes().to_vec();
+            key.extend_from_slice(&0u32.to_be_bytes());
+            let mut piece = tree.get(&key).unwrap().expect("a first piece").to_vec();
+            let mid = piece.len() / 2;
+            piece[mid] ^= 0x5a;
+            tree.insert(&key[..], piece).unwrap();
+            db.flush().unwrap();
+        }
+        let rt = runtime();
+        let store = sled_store(dir.path(), &rt);
+        let e = rt.block_on(store.signature(&damaged)).unwrap_err();
+        assert!(matches!(e, crate::Error::Corrupt { .. }), "{e:?}");
+        let app = node(dir.path(), &store, &rt);
+        let (_, rows) = served(&app);
+        assert_eq!(rows.len(), whole, "every shape served");
+        let bytes = rt.block_on(store.signature(&damaged)).unwrap().unwrap();
+        app.engine
+            .decode_signature(&bytes)
+            .expect("the recomputed signature was stored");
+    }
 }

@@ -200,7 +200,8 @@ pub trait ShapeStore: Send + Sync {
     /// (record, signature) pairs in id order after `after` (exclusive), at most `limit`: page
     /// through the whole corpus (loading, recalibration) without holding it all, see
     /// [`for_each_signature`]. A page may be shorter than `limit` before the end (a record
-    /// whose signature is missing is left out, logged); the end is an empty page.
+    /// whose signature is missing is left out, logged); the end is an empty page. A signature
+    /// found damaged (sled's checksums) comes as no bytes, which decode as no signature.
     async fn scan_signatures(
         &self,
         after: Option<&str>,

@@ -286,13 +286,21 @@ impl ShapeStore for SledStorage {
             let mut out = Vec::with_capacity(records.len());
             for rec in records {
                 // A shape deleted between the two reads is simply not part of the page; a
-                // record without its signature (damage) is left out and said so.
-                match s.signature(&rec.id)? {
-                    Some(sig) => out.push((rec, sig)),
-                    None if s.get(&rec.id)?.is_some() => {
+                // record without its signature (damage) is left out and said so. A signature
+                // whose checksum fails (damage on disk) comes with no bytes, which decode as
+                // no signature: a load recomputes it from the original and stores it again,
+                // as it does a signature of another spec, instead of failing on one shape.
+                match s.signature(&rec.id) {
+                    Ok(Some(sig)) => out.push((rec, sig)),
+                    Ok(None) if s.get(&rec.id)?.is_some() => {
                         tracing::error!(id = %rec.id, "stored shape without its signature; left out");
                     }
-                    None => {}
+                    Ok(None) => {}
+                    Err(e @ Error::Corrupt { .. }) => {
+                        tracing::error!(id = %rec.id, error = %e, "damaged signature; passed on as unreadable");
+                        out.push((rec, Vec::new()));
+                    }
+                    Err(e) => return Err(e),
                 }
             }
             Ok(out)
