@@ -153,6 +153,11 @@ pub enum Error {
     /// an index this build cannot use as it is (another version, another program's data).
     #[error("storage: {0}")]
     Storage(String),
+    /// The storage backend could not be reached or put the work off (a database that is down,
+    /// restarting, out of connections or cut off; a serialization conflict): nothing is known
+    /// to have been written, and the request may be retried.
+    #[error("storage unavailable: {0}")]
+    StorageUnavailable(String),
     /// The work queue or change feed (NATS JetStream) could not be reached or refused a
     /// message; the request may be retried.
     #[error("queue: {0}")]
@@ -197,6 +202,7 @@ impl Error {
             Error::InvalidArgument(_) => "request.invalid",
             Error::Io(_) => "io",
             Error::Storage(_) => "storage",
+            Error::StorageUnavailable(_) => "storage.unavailable",
             Error::Queue(_) => "queue.unavailable",
             Error::Corrupt { .. } => "storage.corrupt",
         }

@@ -455,6 +455,94 @@ async fn a_string_that_is_no_id_names_no_shape(store: Arc<dyn ShapeStore>) {
     assert_eq!(s.mesh(&id).await.unwrap(), Some(a.original.clone()));
 }
 
+/// A database that goes away answers `StorageUnavailable` (the API's 503 `storage.unavailable`
+/// with `Retry-After`), not an internal error (500): a pool whose connections run through a
+/// relay that the test cuts, then a store whose database cannot be reached at all.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_database_that_went_away_is_unavailable_not_internal() {
+    let Some(db) = TestDb::new("a_database_that_went_away_is_unavailable_not_internal").await
+    else {
+        return;
+    };
+    migrate_url(&db.url()).await.expect("migrate");
+    let (host_port, rest) = {
+        let after = db
+            .base
+            .rsplit_once('@')
+            .map(|(_, h)| h)
+            .expect("user@host:port");
+        (
+            after.to_string(),
+            db.base[..db.base.len() - after.len()].to_string(),
+        )
+    };
+    // The relay: every connection copied to the database until `cut` aborts it all.
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let relay_addr = listener.local_addr().unwrap();
+    let links = Arc::new(std::sync::Mutex::new(
+        Vec::<tokio::task::JoinHandle<()>>::new(),
+    ));
+    let kept = links.clone();
+    let target = host_port.clone();
+    let accept = tokio::spawn(async move {
+        while let Ok((mut inbound, _)) = listener.accept().await {
+            let target = target.clone();
+            kept.lock().unwrap().push(tokio::spawn(async move {
+                if let Ok(mut out) = tokio::net::TcpStream::connect(&target).await {
+                    let _ = tokio::io::copy_bidirectional(&mut inbound, &mut out).await;
+                }
+            }));
+        }
+    });
+    let url = format!("{rest}{relay_addr}/{}", db.name);
+    let store = PgStore::connect(&url, PoolOptions { max_size: 2 })
+        .await
+        .expect("connect through the relay");
+    let a = shape(&store, 13, &["t"], SMALL).await;
+    store.insert(a.clone()).await.unwrap();
+    assert_eq!(
+        store.get(&a.record.id).await.unwrap(),
+        Some(a.record.clone())
+    );
+    let b = shape(&store, 14, &["t"], SMALL).await;
+    // Cut: no listener, every relayed connection closed.
+    accept.abort();
+    let _ = accept.await;
+    for l in links.lock().unwrap().drain(..) {
+        l.abort();
+    }
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    for round in 0..3 {
+        let t = Instant::now();
+        match store.get(&a.record.id).await {
+            Err(shapeseek::Error::StorageUnavailable(m)) => {
+                println!("round {round}: unavailable after {:?}: {m}", t.elapsed())
+            }
+            other => panic!("round {round}: {other:?}"),
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "{:?}", t.elapsed());
+    }
+    match store.insert(b).await {
+        Err(shapeseek::Error::StorageUnavailable(_)) => {}
+        other => panic!("insert: {other:?}"),
+    }
+    // A database that cannot be reached when a node starts.
+    let closed = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap()
+    };
+    match PgStore::connect(
+        &format!("{rest}{closed}/{}", db.name),
+        PoolOptions::default(),
+    )
+    .await
+    {
+        Err(shapeseek::Error::StorageUnavailable(_)) => {}
+        Err(e) => panic!("connect to a closed port: {e:?}"),
+        Ok(_) => panic!("connected to a closed port"),
+    }
+}
+
 on_both!(list_pages_and_filters_by_tag);
 async fn list_pages_and_filters_by_tag(store: Arc<dyn ShapeStore>) {
     let s = &*store;

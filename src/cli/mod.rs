@@ -58,7 +58,10 @@ impl From<shapeseek::Error> for CliError {
     fn from(e: shapeseek::Error) -> Self {
         let exit = if matches!(
             e,
-            shapeseek::Error::Io(_) | shapeseek::Error::Storage(_) | shapeseek::Error::Queue(_)
+            shapeseek::Error::Io(_)
+                | shapeseek::Error::Storage(_)
+                | shapeseek::Error::StorageUnavailable(_)
+                | shapeseek::Error::Queue(_)
         ) {
             74
         } else {

@@ -309,7 +309,7 @@ pub async fn list(State(app): AppState, Query(p): Query<ListParams>) -> Result<R
 
 /// `GET /v1/shapes/{id}`.
 pub async fn get_shape(State(app): AppState, Path(id): Path<String>) -> Result<Response, ApiError> {
-    match app.store.get(&id).await.map_err(ApiError::internal)? {
+    match app.store.get(&id).await.map_err(ApiError::from)? {
         Some(rec) => Ok(Json(rec).into_response()),
         None => Err(ApiError::not_found(&id)),
     }
@@ -367,7 +367,7 @@ pub async fn get_mesh(
         .store
         .get(&id)
         .await
-        .map_err(ApiError::internal)?
+        .map_err(ApiError::from)?
         .ok_or_else(|| ApiError::not_found(&id))?;
     // An id's stored original is never replaced and an id is never reused, so the upload's
     // SHA-256 in the record names the bytes for good; a conversion also depends on the readers
@@ -411,7 +411,7 @@ pub async fn get_mesh(
                     .store
                     .mesh(&id)
                     .await
-                    .map_err(ApiError::internal)?
+                    .map_err(ApiError::from)?
                     .ok_or_else(|| ApiError::not_found(&id))?;
                 bytes.into_response()
             }
@@ -451,7 +451,7 @@ pub async fn get_signature(
         .store
         .signature(&id)
         .await
-        .map_err(ApiError::internal)?
+        .map_err(ApiError::from)?
         .ok_or_else(|| ApiError::not_found(&id))?;
     let sig = app
         .engine
@@ -560,12 +560,12 @@ pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
         "calibration_epoch": epoch,
         "calibrated_on": on,
         "calibration_shapes": sampled,
-        "schema_version": app.store.schema_version().await.map_err(ApiError::internal)?,
+        "schema_version": app.store.schema_version().await.map_err(ApiError::from)?,
         "engine": app.engine.name(),
         "spec_key": app.engine.spec_key(),
         "signature_spec": app.engine.spec_json(),
         "default_query": serde_json::to_value(app.engine.default_query()).map_err(ApiError::internal)?,
-        "size_on_disk": app.store.size_on_disk().await.map_err(ApiError::internal)?,
+        "size_on_disk": app.store.size_on_disk().await.map_err(ApiError::from)?,
         "queue": queue_stats(&app),
         // What an upload may be: a client checks a file against these before sending it (a
         // body over `max_body_bytes` is cut off mid-send, which a client sees as a broken
@@ -628,7 +628,7 @@ pub async fn readyz(State(app): AppState) -> Result<Response, ApiError> {
         let counted = app.scan.try_read().ok().map(|s| app.corpus_size(&s));
         let shapes = match counted {
             Some(n) => n as u64,
-            None => app.store.count().await.map_err(ApiError::internal)?,
+            None => app.store.count().await.map_err(ApiError::from)?,
         };
         Ok(Json(serde_json::json!({"status": "ready", "shapes": shapes})).into_response())
     } else {

@@ -133,7 +133,7 @@ impl ApiError {
             | E::Inconsistent { .. }
             | E::Degenerate { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             E::InvalidArgument(_) => StatusCode::BAD_REQUEST,
-            E::Queue(_) => StatusCode::SERVICE_UNAVAILABLE,
+            E::Queue(_) | E::StorageUnavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             // Only a request's cancellation token interrupts: its answer is the timeout's.
             E::Interrupted(_) => return Some((StatusCode::SERVICE_UNAVAILABLE, "request.timeout")),
             E::Io(_) | E::Storage(_) | E::Corrupt { .. } => return None,
@@ -148,6 +148,15 @@ impl ApiError {
 
 impl From<crate::Error> for ApiError {
     fn from(e: crate::Error) -> Self {
+        if let crate::Error::StorageUnavailable(why) = &e {
+            // The database's own words (its host, its message) go to the log only.
+            tracing::warn!(error = %why, "storage unavailable");
+            return Self::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                e.code(),
+                "the index's database cannot be reached or put the request off; retry later",
+            );
+        }
         match Self::status_of(&e) {
             Some((status, code)) => Self::new(status, code, e.to_string()),
             None => Self::internal(format_args!("[{}] {e}", e.code())),
@@ -316,6 +325,11 @@ mod tests {
                 "server.internal",
             ),
             (Error::Storage("x".into()), 500, "server.internal"),
+            (
+                Error::StorageUnavailable("x".into()),
+                503,
+                "storage.unavailable",
+            ),
             (
                 Error::corrupt("signature", Some("0001"), "x"),
                 500,

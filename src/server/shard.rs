@@ -128,7 +128,7 @@ impl App {
         let Some(sh) = self.shard() else {
             return Ok(false);
         };
-        let n = self.store.count().await.map_err(ApiError::internal)?;
+        let n = self.store.count().await.map_err(ApiError::from)?;
         sh.set_total(n as usize);
         if sh.spec.holds(id) {
             let uncalibrated = self
@@ -288,7 +288,7 @@ impl App {
                     .store
                     .signature(id)
                     .await
-                    .map_err(ApiError::internal)?
+                    .map_err(ApiError::from)?
                     .ok_or_else(|| ApiError::not_found(id))?;
                 self.engine.decode_signature(&b)?
             }

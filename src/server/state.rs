@@ -204,10 +204,6 @@ pub struct SearchTimings {
     pub total_ms: f64,
 }
 
-fn storage(e: crate::Error) -> ApiError {
-    ApiError::internal(e)
-}
-
 /// Valid tags: 1..=64 characters, at most 32 of them.
 pub fn validate_tags(tags: &[String]) -> Result<(), ApiError> {
     if tags.len() > 32 {
@@ -269,7 +265,7 @@ impl App {
 
     /// The stored re-ranking payload of a shape (`None` when it has none).
     async fn read_payload(&self, id: &str) -> Result<Option<GwPayload>, ApiError> {
-        match self.store.payload(id).await.map_err(storage)? {
+        match self.store.payload(id).await.map_err(ApiError::from)? {
             None => Ok(None),
             Some(b) => decode_payload(id, &b).map(Some),
         }
@@ -286,7 +282,7 @@ impl App {
     pub(super) async fn query_payload(&self, id: &str) -> Result<GwPayload, ApiError> {
         match self.read_payload(id).await? {
             Some(p) => Ok(p),
-            None if self.store.get(id).await.map_err(storage)?.is_none() => {
+            None if self.store.get(id).await.map_err(ApiError::from)?.is_none() => {
                 Err(ApiError::not_found(id))
             }
             None => Err(no_payload(id)),
@@ -343,8 +339,13 @@ impl App {
         self: &Arc<Self>,
         digest: &[u8; 32],
     ) -> Result<Option<IngestResult>, ApiError> {
-        if let Some(id) = self.store.id_for_hash(digest).await.map_err(storage)? {
-            if let Some(rec) = self.store.get(&id).await.map_err(storage)? {
+        if let Some(id) = self
+            .store
+            .id_for_hash(digest)
+            .await
+            .map_err(ApiError::from)?
+        {
+            if let Some(rec) = self.store.get(&id).await.map_err(ApiError::from)? {
                 self.apply_insert(&id).await?;
                 return Ok(Some(IngestResult {
                     id,
@@ -382,10 +383,12 @@ impl App {
         // The last point where an abandoned ingest stops: past it the shape is stored.
         cancel.check()?;
         let t3 = Instant::now();
-        let id = self.block(self.store.new_id()).map_err(storage)?;
+        let id = self.block(self.store.new_id()).map_err(ApiError::from)?;
         let (shape, sig, reencoded_from) = prepared.into_new_shape(&id);
         let record = shape.record.clone();
-        let outcome = self.block(self.store.insert(shape)).map_err(storage)?;
+        let outcome = self
+            .block(self.store.insert(shape))
+            .map_err(ApiError::from)?;
         let id = match outcome {
             InsertOutcome::AlreadyPresent(id) => {
                 return self
@@ -557,7 +560,7 @@ impl App {
             .store
             .mesh(&rec.id)
             .await
-            .map_err(ApiError::internal)?
+            .map_err(ApiError::from)?
             .ok_or_else(|| ApiError::not_found(&rec.id))?;
         // Abandoned (the deadline passed, or the client left and the request's future was
         // dropped): the conversion stops before it reads or before it writes.

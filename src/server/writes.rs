@@ -67,7 +67,7 @@ impl App {
         let (app, id) = (self.clone(), id.to_string());
         tokio::spawn(async move {
             let mut graves = app.writes.clone().lock_owned().await;
-            let stored = !from_store || app.store.delete(&id).await.map_err(ApiError::internal)?;
+            let stored = !from_store || app.store.delete(&id).await.map_err(ApiError::from)?;
             let scan = app.clone();
             // The scan's write lock may wait for a running search: not on an async worker.
             let held = tokio::task::spawn_blocking(move || {

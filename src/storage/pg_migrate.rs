@@ -62,7 +62,35 @@ pub struct MigrateReport {
 /// The error of a failed statement: what was being done and the server's message
 /// ([`describe`]).
 pub(crate) fn pg(what: &str) -> impl Fn(tokio_postgres::Error) -> Error + '_ {
-    move |e| storage_err(format!("postgres: {what}: {}", describe(&e)))
+    move |e| {
+        let message = format!("postgres: {what}: {}", describe(&e));
+        if transient(&e) {
+            Error::StorageUnavailable(message)
+        } else {
+            storage_err(message)
+        }
+    }
+}
+
+/// True when the statement failed because the database could not be reached or put it off,
+/// so that the same request may succeed later (503, not 500): the connection closed, could not
+/// be opened or timed out (the driver's I/O errors), or the server answered with a connection
+/// exception (SQLSTATE class 08), a shutdown or start-up in progress (57P01–57P03), too many
+/// connections (53300), a serialization failure or a deadlock (40001, 40P01).
+pub(crate) fn transient(e: &tokio_postgres::Error) -> bool {
+    match e.code() {
+        Some(state) => {
+            let code = state.code();
+            code.starts_with("08")
+                || matches!(
+                    code,
+                    "57P01" | "57P02" | "57P03" | "53300" | "40001" | "40P01"
+                )
+        }
+        None => {
+            e.is_closed() || std::error::Error::source(e).is_some_and(|s| s.is::<std::io::Error>())
+        }
+    }
 }
 
 /// The server's message of a database error, else the driver's.

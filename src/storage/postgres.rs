@@ -24,7 +24,7 @@
 //!   and a user timeout on its connection (`LOCK_BEGIN`) so that the session ends, and the lock
 //!   is free, within about half a minute instead of the two hours of the system's defaults.
 
-use super::pg_migrate::{self, describe, pg, Prepared, PG_SCHEMA_VERSION};
+use super::pg_migrate::{self, describe, pg, transient, Prepared, PG_SCHEMA_VERSION};
 use super::{
     check_meta_key, format_id, parse_cursor, parse_id, Backend, CalibrationLock, InsertOutcome,
     LockHolder, NewShape, Page, ShapeStore, StoredCalibration,
@@ -32,7 +32,9 @@ use super::{
 use crate::index::store::{storage_err, ShapeRecord};
 use crate::{Error, Result};
 use async_trait::async_trait;
-use deadpool_postgres::{Manager, ManagerConfig, Object, Pool, RecyclingMethod, Runtime};
+use deadpool_postgres::{
+    Manager, ManagerConfig, Object, Pool, PoolError, RecyclingMethod, Runtime,
+};
 use tokio_postgres::NoTls;
 
 /// Pool settings.
@@ -79,10 +81,31 @@ fn io_runtime() -> Result<tokio::runtime::Handle> {
     Ok(IO.get_or_init(|| handle).clone())
 }
 
+/// The URL's settings, with two bounds where it sets none, so that a database that went away
+/// answers an error (503 `storage.unavailable`) instead of holding the request's thread: a new
+/// connection gives up after [`CONNECT_TIMEOUT`], and a statement whose bytes the server no
+/// longer acknowledges (a host cut off) after [`TCP_USER_TIMEOUT`] (the system's default is
+/// about a quarter of an hour of retransmissions). Neither bounds a statement the server is
+/// working on.
 fn parse_url(url: &str) -> Result<tokio_postgres::Config> {
-    url.parse::<tokio_postgres::Config>()
-        .map_err(|e| Error::InvalidArgument(format!("PostgreSQL URL: {e}")))
+    let mut cfg = url
+        .parse::<tokio_postgres::Config>()
+        .map_err(|e| Error::InvalidArgument(format!("PostgreSQL URL: {e}")))?;
+    if cfg.get_connect_timeout().is_none() {
+        cfg.connect_timeout(CONNECT_TIMEOUT);
+    }
+    if cfg.get_tcp_user_timeout().is_none() {
+        cfg.tcp_user_timeout(TCP_USER_TIMEOUT);
+    }
+    Ok(cfg)
 }
+
+/// See [`parse_url`] (the URL's `connect_timeout` overrides it).
+const CONNECT_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+/// See [`parse_url`] (the URL's `tcp_user_timeout` overrides it).
+const TCP_USER_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+/// How long a request waits for a pooled connection when all are in use.
+const POOL_WAIT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// One plain connection (no pool), its connection task spawned.
 async fn connect_one(url: &str) -> Result<tokio_postgres::Client> {
@@ -140,6 +163,8 @@ impl PgStore {
         );
         let pool = Pool::builder(mgr)
             .max_size(opts.max_size.max(1))
+            .wait_timeout(Some(POOL_WAIT))
+            .create_timeout(Some(CONNECT_TIMEOUT))
             .runtime(Runtime::Tokio1)
             .build()
             .map_err(|e| storage_err(format!("postgres: building the pool: {e}")))?;
@@ -160,7 +185,16 @@ impl PgStore {
             .spawn(async move { pool.get().await })
             .await
             .map_err(|e| storage_err(format!("postgres: connection task: {e}")))?
-            .map_err(|e| storage_err(format!("postgres: no connection: {e}")))
+            .map_err(|e| {
+                let message = format!("postgres: no connection: {e}");
+                match &e {
+                    PoolError::Backend(b) if !transient(b) => storage_err(message),
+                    PoolError::Backend(_) | PoolError::Timeout(_) | PoolError::Closed => {
+                        Error::StorageUnavailable(message)
+                    }
+                    _ => storage_err(message),
+                }
+            })
     }
 
     /// Takes the calibration row lock on a dedicated connection; `None` when `skip` and it is
