@@ -1092,3 +1092,96 @@ fn head_on_a_stored_mesh_answers_its_headers_without_converting() {
     assert_eq!(code, 400);
     server.stop();
 }
+
+/// A client that asks for a large original and reads none of it. Its connection is closed once
+/// the server's writes have waited `send_stall_timeout_secs`, which frees the response, and the
+/// bytes of downloads held at once stay within `max_inflight_response_bytes`: a second download
+/// of the same original waits for the first's room and is then served whole. (Before, the
+/// silent client kept its connection and the original's memory for as long as TCP kept the
+/// connection, and downloads had no bound: forty such clients of a 13 MB original held 1 GB.)
+#[test]
+fn a_client_that_reads_nothing_of_a_download_is_cut_off_and_downloads_are_bounded() {
+    use std::io::{Read, Write};
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("meshes");
+    let file = meshes(&dir, 1, 500).remove(0);
+    // The mesh with 12 MB of comment lines, kept whole as its original (the floor allows it).
+    let mut bytes = std::fs::read(&file).unwrap();
+    let line = format!("# {}\n", "p".repeat(97));
+    while bytes.len() < 12 << 20 {
+        bytes.extend_from_slice(line.as_bytes());
+    }
+    std::fs::write(&file, &bytes).unwrap();
+    let server = Server::start_with(
+        &tmp.path().join("data"),
+        &[
+            ("SHAPESEEK_MAX_BODY_BYTES", "16777216"),
+            ("SHAPESEEK_STORED_BYTES_FLOOR", "16777216"),
+            ("SHAPESEEK_MAX_INFLIGHT_RESPONSE_BYTES", "16777216"),
+            ("SHAPESEEK_SEND_STALL_TIMEOUT_SECS", "2"),
+        ],
+    );
+    let port: u16 = server.url.rsplit(':').next().unwrap().parse().unwrap();
+    let o = run(&["ingest", "--url", &server.url, s(&dir)]);
+    assert_eq!(o.code, 0, "{}\n{}", o.stdout, o.stderr);
+    let (_, raw) = get(port, "/v1/shapes").unwrap();
+    let body: Value = serde_json::from_str(raw.split("\r\n\r\n").nth(1).unwrap()).unwrap();
+    let id = body["items"][0]["id"].as_str().unwrap().to_string();
+    assert_eq!(body["items"][0]["bytes"].as_u64(), Some(bytes.len() as u64));
+    let counter = |name: &str| {
+        let (_, m) = get(port, "/metrics").unwrap();
+        m.lines()
+            .find(|l| l.starts_with(name))
+            .map_or(0, |l| l.rsplit(' ').next().unwrap().parse::<u64>().unwrap())
+    };
+
+    // The silent client: a 4 KiB receive buffer, set before it connects.
+    let silent = socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
+    silent.set_recv_buffer_size(4096).unwrap();
+    silent
+        .connect(&std::net::SocketAddr::from(([127, 0, 0, 1], port)).into())
+        .unwrap();
+    let mut silent: std::net::TcpStream = silent.into();
+    let t0 = Instant::now();
+    silent
+        .write_all(format!("GET /v1/shapes/{id}/mesh HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes())
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    // A second download of the same original: the first holds 12 of the 16 MiB.
+    let (code, full) = {
+        let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+        c.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+        c.write_all(
+            format!("GET /v1/shapes/{id}/mesh HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+                .as_bytes(),
+        )
+        .unwrap();
+        let mut raw = Vec::new();
+        c.read_to_end(&mut raw).unwrap();
+        let head_end = raw.windows(4).position(|w| w == b"\r\n\r\n").unwrap() + 4;
+        let head = String::from_utf8_lossy(&raw[..head_end]).into_owned();
+        let code: u16 = head.split(' ').nth(1).unwrap().parse().unwrap();
+        (code, raw[head_end..].to_vec())
+    };
+    let waited = t0.elapsed();
+    assert_eq!(code, 200);
+    assert!(full == bytes, "the second download is the original, whole");
+    assert!(
+        waited >= Duration::from_millis(1500),
+        "the second download did not wait for room ({waited:?})"
+    );
+    assert!(counter("shapeseek_downloads_waited_total") >= 1);
+    assert_eq!(counter("shapeseek_connections_stalled_total"), 1);
+    // The silent client's connection was closed: it gets what was in flight, then the end.
+    silent
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    let mut got = Vec::new();
+    let end = silent.read_to_end(&mut got);
+    assert!(
+        got.len() < bytes.len(),
+        "the silent client was sent the whole original ({} bytes; {end:?})",
+        got.len()
+    );
+    server.stop();
+}

@@ -395,10 +395,26 @@ fn limits_that_contradict_each_other_are_refused_at_start() {
     let e = cfg.validate().expect_err("budget below one body");
     assert!(e.to_string().contains("max_inflight_body_bytes"), "{e}");
     let cfg = ServerConfig {
-        header_read_timeout_secs: 0.0,
+        max_body_bytes: 64 << 20,
+        max_inflight_response_bytes: 1 << 20,
         ..Default::default()
     };
-    assert!(cfg.validate().is_err());
+    let e = cfg
+        .validate()
+        .expect_err("download budget below one original");
+    assert!(e.to_string().contains("max_inflight_response_bytes"), "{e}");
+    for bad in [
+        ServerConfig {
+            header_read_timeout_secs: 0.0,
+            ..Default::default()
+        },
+        ServerConfig {
+            send_stall_timeout_secs: 0.0,
+            ..Default::default()
+        },
+    ] {
+        assert!(bad.validate().is_err());
+    }
 }
 
 #[test]

@@ -61,6 +61,14 @@ pub struct ServerConfig {
     /// it arrives (in 64 KiB steps); a body that does not fit gets 503 `server.busy`. At least
     /// `max_body_bytes`.
     pub max_inflight_body_bytes: usize,
+    /// Download bytes (stored originals, format conversions) held in memory at once over all
+    /// connections, each until its last byte has left; a download waits for room (until the
+    /// request's deadline). At least `max_body_bytes`.
+    pub max_inflight_response_bytes: usize,
+    /// Seconds a response may wait for a client that reads none of it (the socket's send
+    /// buffer full, no byte accepted); past it the connection is closed and what it held is
+    /// freed.
+    pub send_stall_timeout_secs: f64,
     /// CPU jobs (analysis + signature) run at once; 0 = number of cores.
     pub workers: usize,
     /// CPU jobs allowed to wait, per admission lane (cheap, heavy); more get 503 `server.busy`.
@@ -131,6 +139,8 @@ impl Default for ServerConfig {
             header_read_timeout_secs: 10.0,
             body_read_timeout_secs: 60.0,
             max_inflight_body_bytes: 256 << 20,
+            max_inflight_response_bytes: 256 << 20,
+            send_stall_timeout_secs: 30.0,
             workers: 0,
             queue_capacity: 16,
             heavy_share: 0.75,
@@ -230,6 +240,7 @@ impl ServerConfig {
         for (name, v) in [
             ("header_read_timeout_secs", self.header_read_timeout_secs),
             ("body_read_timeout_secs", self.body_read_timeout_secs),
+            ("send_stall_timeout_secs", self.send_stall_timeout_secs),
         ] {
             if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
                 return bad(&format!("{name} must be in (0, 86400]"));
@@ -246,6 +257,13 @@ impl ServerConfig {
                 "max_inflight_body_bytes ({}) must be at least max_body_bytes ({}): a \
                  maximum-size upload could never be admitted",
                 self.max_inflight_body_bytes, self.max_body_bytes
+            ));
+        }
+        if self.max_inflight_response_bytes < self.max_body_bytes {
+            return bad(&format!(
+                "max_inflight_response_bytes ({}) must be at least max_body_bytes ({}): the \
+                 largest original would take the whole budget",
+                self.max_inflight_response_bytes, self.max_body_bytes
             ));
         }
         if !(self.shutdown_grace_secs.is_finite() && self.shutdown_grace_secs >= 0.0) {

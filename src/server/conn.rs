@@ -11,6 +11,11 @@
 //! * a header-read timeout ([`ConnLimits::header_read_timeout`]) driven by a tokio timer: it
 //!   covers a connection that sends nothing, an unfinished request head, and an idle keep-alive
 //!   connection waiting for its next request (hyper restarts the timer for every request head);
+//! * a send-stall timeout ([`ConnLimits::send_stall_timeout`]): a response whose client reads
+//!   nothing of it (the socket's send buffer stays full) closes the connection once writes have
+//!   made no progress for that long, which frees the response (hyper has no write timeout; a
+//!   client could otherwise hold a large download in the server's memory for as long as TCP
+//!   kept the connection);
 //! * problem+json for the errors hyper answers by itself before any handler runs (400 for a
 //!   head it cannot parse — control bytes in a header, a bad method —, 414 for a URI it cannot
 //!   represent, 431 for too many or too large headers): hyper writes a bare status line with an
@@ -49,6 +54,9 @@ pub struct ConnLimits {
     /// Time a client has to send a complete request head (also the idle time of a keep-alive
     /// connection between requests).
     pub header_read_timeout: Duration,
+    /// Time a response may wait for a client that reads none of it; past it the connection
+    /// is closed.
+    pub send_stall_timeout: Duration,
     /// `Retry-After` seconds sent with a refused connection.
     pub retry_after_secs: u64,
 }
@@ -93,7 +101,8 @@ pub async fn serve(
         >::map_response(
             router.clone(), length_unknown
         ));
-        let conn = http.serve_connection(TokioIo::new(ProblemIo::new(stream)), service);
+        let io = ProblemIo::new(stream, limits.send_stall_timeout);
+        let conn = http.serve_connection(TokioIo::new(io), service);
         let conn = graceful.watch(conn);
         tokio::spawn(async move {
             if let Err(e) = conn.await {
@@ -207,21 +216,54 @@ fn automatic_response_problem(head: &[u8]) -> Option<ApiError> {
 }
 
 /// A TCP stream whose outgoing automatic error responses of hyper are replaced by
-/// problem+json documents (see the module docs).
+/// problem+json documents, and whose writes fail once they have made no progress for
+/// `stall_after` (see the module docs).
 pub struct ProblemIo {
     inner: TcpStream,
     /// Replacement bytes still to be written.
     pending: Vec<u8>,
     written: usize,
+    /// How long a write may wait for the client to read ([`ConnLimits::send_stall_timeout`]).
+    stall_after: Duration,
+    /// Armed by a write or flush that could not proceed, disarmed by one that did.
+    stall: Option<Pin<Box<tokio::time::Sleep>>>,
 }
 
 impl ProblemIo {
-    fn new(inner: TcpStream) -> Self {
+    fn new(inner: TcpStream, stall_after: Duration) -> Self {
         Self {
             inner,
             pending: Vec::new(),
             written: 0,
+            stall_after,
+            stall: None,
         }
+    }
+
+    /// Passes a write's, flush's or shutdown's outcome on, and fails it once writes have
+    /// waited `stall_after` without a byte accepted: hyper then drops the connection, and with
+    /// it the response it was sending. The timer registers the task's waker, so a client that
+    /// reads nothing (a full send buffer never wakes the task) is still noticed.
+    fn watch<T>(&mut self, cx: &mut Context<'_>, p: Poll<io::Result<T>>) -> Poll<io::Result<T>> {
+        if p.is_ready() {
+            self.stall = None;
+            return p;
+        }
+        let after = self.stall_after;
+        let timer = self
+            .stall
+            .get_or_insert_with(|| Box::pin(tokio::time::sleep(after)));
+        if timer.as_mut().poll(cx).is_pending() {
+            return Poll::Pending;
+        }
+        metrics::counter!("shapeseek_connections_stalled_total").increment(1);
+        Poll::Ready(Err(io::Error::new(
+            io::ErrorKind::TimedOut,
+            format!(
+                "the client read nothing for {:.0} s; connection closed",
+                after.as_secs_f64()
+            ),
+        )))
     }
 
     /// Writes what is left of a replacement; Ready(Ok) once it is all out.
@@ -264,33 +306,37 @@ impl AsyncWrite for ProblemIo {
                 this.pending = raw_problem(&err);
                 this.written = 0;
             } else {
-                return Pin::new(&mut this.inner).poll_write(cx, buf);
+                let p = Pin::new(&mut this.inner).poll_write(cx, buf);
+                return this.watch(cx, p);
             }
         }
         // A replacement is under way: hyper's bytes are consumed (the connection closes after
         // this response), ours are written instead.
-        match this.drive_pending(cx) {
+        let p = match this.drive_pending(cx) {
             Poll::Ready(Ok(())) => Poll::Ready(Ok(buf.len())),
             Poll::Ready(Err(e)) => Poll::Ready(Err(e)),
             Poll::Pending if this.written > 0 => Poll::Ready(Ok(buf.len())),
             Poll::Pending => Poll::Pending,
-        }
+        };
+        this.watch(cx, p)
     }
 
     fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         let this = &mut *self;
-        match this.drive_pending(cx) {
+        let p = match this.drive_pending(cx) {
             Poll::Ready(Ok(())) => Pin::new(&mut this.inner).poll_flush(cx),
             other => other,
-        }
+        };
+        this.watch(cx, p)
     }
 
     fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         let this = &mut *self;
-        match this.drive_pending(cx) {
+        let p = match this.drive_pending(cx) {
             Poll::Ready(Ok(())) => Pin::new(&mut this.inner).poll_shutdown(cx),
             other => other,
-        }
+        };
+        this.watch(cx, p)
     }
 
     fn is_write_vectored(&self) -> bool {

@@ -405,23 +405,25 @@ pub async fn get_mesh(
         }
         r
     } else {
-        match to {
+        // Held under the download budget until the last byte has left (`limits::ResponseBudget`).
+        let body = match to {
             None => {
+                let room = app.downloads.reserve(rec.bytes as usize).await;
                 let bytes = app
                     .store
                     .mesh(&id)
                     .await
                     .map_err(ApiError::from)?
                     .ok_or_else(|| ApiError::not_found(&id))?;
-                bytes.into_response()
+                room.body(bytes)
             }
             Some(to) => {
                 let deadline = super::router::deadline_of(&req);
-                app.convert_original(&rec, to, deadline)
-                    .await?
-                    .into_response()
+                let out = app.convert_original(&rec, to, deadline).await?;
+                app.downloads.reserve(out.len()).await.body(out)
             }
-        }
+        };
+        body.into_response()
     };
     // Always octet-stream (the record's `format`/`content_type` name the original's format): a
     // format type such as `model/gltf+json` would make clients parse the download as JSON.

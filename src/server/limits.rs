@@ -105,6 +105,117 @@ impl BodyGate {
     }
 }
 
+/// The bytes of downloads held in memory at once (stored originals, format conversions), over
+/// all connections: a download reserves its size before its original is read from the store
+/// (the size is in the record) or once its conversion is written, waiting for room (the
+/// request's deadline ends the wait: 503 `request.timeout`). The reservation travels with the
+/// response's body ([`Reserved::body`]), so it ends when hyper has taken the last byte (it then
+/// holds one frame's worth at most) or the connection closed, not when the handler returns. (Before, every download read its whole
+/// original with no bound: forty clients that asked for a 13 MB original and read nothing held
+/// about 1 GB until they left.) A download larger than the whole budget takes all of it.
+pub struct ResponseBudget {
+    /// Budget in KiB.
+    kib: Arc<Semaphore>,
+    total_kib: u32,
+}
+
+/// Room reserved in a [`ResponseBudget`].
+pub struct Reserved(tokio::sync::OwnedSemaphorePermit);
+
+/// A download's bytes with their reservation: freed together once the last of them has been
+/// taken by hyper (or the response dropped with its connection).
+struct Held {
+    data: Vec<u8>,
+    _room: tokio::sync::OwnedSemaphorePermit,
+}
+
+impl AsRef<[u8]> for Held {
+    fn as_ref(&self) -> &[u8] {
+        &self.data
+    }
+}
+
+/// The body of a download: its bytes handed out in [`DOWNLOAD_FRAME`] pieces, each a view of
+/// the held buffer. hyper copies a frame into its own write buffer (the connection's IO is not
+/// vectored) and asks for the next only once that has room; given the whole buffer as one
+/// frame, it copied all of it and dropped ours at once, so a reservation in the frame was
+/// given back while hyper still held every byte. In pieces, the buffer and its reservation
+/// stay with the body until its last piece, and hyper holds one piece at most. Its exact size
+/// gives the answer its `Content-Length`.
+struct Download {
+    rest: axum::body::Bytes,
+}
+
+/// Bytes per frame of a [`Download`].
+const DOWNLOAD_FRAME: usize = 64 * 1024;
+
+impl hyper::body::Body for Download {
+    type Data = axum::body::Bytes;
+    type Error = std::convert::Infallible;
+
+    fn poll_frame(
+        mut self: std::pin::Pin<&mut Self>,
+        _cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Result<hyper::body::Frame<Self::Data>, Self::Error>>> {
+        if self.rest.is_empty() {
+            return std::task::Poll::Ready(None);
+        }
+        let n = self.rest.len().min(DOWNLOAD_FRAME);
+        let piece = self.rest.split_to(n);
+        std::task::Poll::Ready(Some(Ok(hyper::body::Frame::data(piece))))
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.rest.is_empty()
+    }
+
+    fn size_hint(&self) -> hyper::body::SizeHint {
+        hyper::body::SizeHint::with_exact(self.rest.len() as u64)
+    }
+}
+
+impl ResponseBudget {
+    /// A budget of `bytes`.
+    pub fn new(bytes: usize) -> Self {
+        Self {
+            kib: Arc::new(Semaphore::new(kib(bytes) as usize)),
+            total_kib: kib(bytes),
+        }
+    }
+
+    /// Waits for room for `bytes` (at most the whole budget).
+    pub async fn reserve(&self, bytes: usize) -> Reserved {
+        let want = kib(bytes).min(self.total_kib);
+        if self.kib.available_permits() < want as usize {
+            metrics::counter!("shapeseek_downloads_waited_total").increment(1);
+        }
+        let permit = self
+            .kib
+            .clone()
+            .acquire_many_owned(want)
+            .await
+            .expect("the budget's semaphore is never closed");
+        Reserved(permit)
+    }
+
+    /// KiB of the budget free now.
+    pub fn available_kib(&self) -> usize {
+        self.kib.available_permits()
+    }
+}
+
+impl Reserved {
+    /// `data` as a response body holding this reservation until its last byte is taken.
+    pub fn body(self, data: Vec<u8>) -> axum::body::Body {
+        axum::body::Body::new(Download {
+            rest: axum::body::Bytes::from_owner(Held {
+                data,
+                _room: self.0,
+            }),
+        })
+    }
+}
+
 /// The steps in which a body takes from the budget as it arrives.
 pub const RESERVE_STEP: usize = 64 * 1024;
 

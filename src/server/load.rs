@@ -79,6 +79,7 @@ impl App {
         })?;
         let shard = cfg.shard_spec().map(super::shard::Sharding::new);
         let conversions = Arc::new(tokio::sync::Semaphore::new(cfg.effective_workers().max(1)));
+        let downloads = super::limits::ResponseBudget::new(cfg.max_inflight_response_bytes);
         let app = App {
             shard,
             admission,
@@ -95,6 +96,7 @@ impl App {
             metrics: m::handle(),
             cluster: None,
             conversions,
+            downloads,
         };
         app.record_specs()?;
         let loaded = app.load_signatures()?;

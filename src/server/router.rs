@@ -318,6 +318,7 @@ pub async fn start_with(cfg: ServerConfig, engine: crate::index::Engine) -> Resu
     let limits = ConnLimits {
         max_connections: cfg.max_connections,
         header_read_timeout: Duration::from_secs_f64(cfg.header_read_timeout_secs),
+        send_stall_timeout: Duration::from_secs_f64(cfg.send_stall_timeout_secs),
         retry_after_secs: cfg.retry_after_secs,
     };
     let front = front_router(loaded.clone(), cfg.retry_after_secs);

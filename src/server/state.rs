@@ -56,6 +56,8 @@ pub struct App {
     /// Format conversions of stored originals ([`App::convert_original`]) running at once:
     /// `workers` permits, apart from the admission lanes.
     pub(super) conversions: Arc<tokio::sync::Semaphore>,
+    /// Download bytes held at once (`max_inflight_response_bytes`).
+    pub(super) downloads: super::limits::ResponseBudget,
 }
 
 /// Per-stage milliseconds of one ingest or query analysis.
