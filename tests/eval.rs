@@ -944,6 +944,57 @@ fn loco_selection_and_scoring_by_hand() {
     assert!(md.contains("Per strength"));
 }
 
+/// A fold with no held-in figure (every other class a single shape, so no held-in query has a
+/// relevant shape) is left out of every table and named. The fixed rows had kept it: their
+/// cells sat one column off under the kept folds' headers (the left-out class's figures under
+/// the next class's name), and their means were over more folds than the selection's.
+#[test]
+fn loco_leaves_a_fold_without_held_in_figures_out_of_every_row() {
+    let classes = [0, 0, 0, 1, 2];
+    let n = classes.len();
+    let transforms: Vec<String> = (0..n).map(|_| "null".to_string()).collect();
+    let strengths: Vec<i64> = vec![0; n];
+    let included = vec![true; n];
+    let a = line_matrix(&[0.0, 0.1, 0.2, 5.0, 9.0]);
+    let mut held_in = HeldIn::new(&classes, 3, &included);
+    held_in.record(&a, None);
+    let results = vec![ConfigResult {
+        name: "A".into(),
+        eval: evaluate(&a, n, &classes, &transforms, &strengths, &included),
+        alias: None,
+    }];
+    let fixed = vec!["A".to_string()];
+    let class_ids: Vec<String> = ["c0", "c1", "c2"].iter().map(|s| s.to_string()).collect();
+    let report = held_in.report(&RunView {
+        results: &results,
+        candidate: &[true],
+        fixed: &fixed,
+        class_ids: &class_ids,
+        classes: &classes,
+        transforms: &transforms,
+        strengths: &strengths,
+    });
+    assert_eq!(report.skipped, ["c0"]);
+    assert_eq!(report.classes, ["c1", "c2"]);
+    let row = report.fixed("A").unwrap();
+    assert_eq!(
+        row.folds.len(),
+        report.folds.len(),
+        "one cell per reported fold"
+    );
+    assert_eq!(row.held_in.len(), report.folds.len());
+    for (cell, fold) in row.folds.iter().zip(&report.folds) {
+        assert_eq!(
+            cell.groups, fold.held_out_figures.groups,
+            "{}: the fixed row's cell is another fold's",
+            fold.held_out
+        );
+    }
+    assert!(report
+        .markdown()
+        .contains("Left out (no other class has a query"));
+}
+
 /// `eval --protocol loco` end to end on the shared `bench/mini` split (3 classes): three folds,
 /// each choosing among the candidates, `default` reported as fixed with its re-ranking stage
 /// re-run per fold, the figures consistent with the standard run's per-query APs.

@@ -272,6 +272,9 @@ pub struct LocoReport {
     pub candidates: Vec<String>,
     /// Per fold: the selection and the chosen configuration's held-out figures.
     pub folds: Vec<LocoFold>,
+    /// Classes whose fold was left out: no candidate had a held-in figure (no other class has
+    /// a query with a relevant shape).
+    pub skipped: Vec<String>,
     /// Over the folds, for the selected configurations.
     pub summary: Summary,
     /// Fixed configurations and the in-sample best.
@@ -386,6 +389,10 @@ impl HeldIn {
         };
         let cands: Vec<usize> = (0..v.results.len()).filter(|&r| v.candidate[r]).collect();
         let mut folds = Vec::new();
+        // The folds reported (fold index into `self.folds`): a fold where no candidate has a
+        // held-in figure is left out of every table, fixed rows included.
+        let mut kept: Vec<usize> = Vec::new();
+        let mut skipped: Vec<String> = Vec::new();
         for (fi, &c) in self.folds.iter().enumerate() {
             let mut ranked: Vec<(usize, f64)> = cands
                 .iter()
@@ -394,8 +401,10 @@ impl HeldIn {
             // Highest held-in mAP first; ties keep configuration order (stable sort).
             ranked.sort_by(|a, b| b.1.total_cmp(&a.1));
             let Some(&(best, score)) = ranked.first() else {
+                skipped.push(v.class_ids[c].clone());
                 continue;
             };
+            kept.push(fi);
             folds.push((
                 c,
                 LocoFold {
@@ -434,12 +443,12 @@ impl HeldIn {
         let fixed = fixed_rows
             .into_iter()
             .map(|(r, role)| {
-                let per: Vec<FoldFigures> = self.folds.iter().map(|&c| figures(r, c)).collect();
+                let per: Vec<FoldFigures> =
+                    kept.iter().map(|&fi| figures(r, self.folds[fi])).collect();
                 let summary = summarize(
-                    &self
-                        .folds
+                    &kept
                         .iter()
-                        .map(|&c| v.class_ids[c].as_str())
+                        .map(|&fi| v.class_ids[self.folds[fi]].as_str())
                         .zip(per.iter())
                         .collect::<Vec<_>>(),
                 );
@@ -448,7 +457,7 @@ impl HeldIn {
                     role,
                     full_set_map: full_map(r),
                     folds: per,
-                    held_in: self.scores[r].clone(),
+                    held_in: kept.iter().map(|&fi| self.scores[r][fi]).collect(),
                     summary,
                 }
             })
@@ -463,6 +472,7 @@ impl HeldIn {
             classes: folds.iter().map(|(_, f)| f.held_out.clone()).collect(),
             candidates: cands.iter().map(|&r| v.results[r].name.clone()).collect(),
             folds: folds.into_iter().map(|(_, f)| f).collect(),
+            skipped,
             summary,
             fixed,
             transforms,
@@ -520,11 +530,20 @@ impl LocoReport {
         let _ = writeln!(
             s,
             "{} folds; candidates: {cand}. Per fold the candidate with the best All mAP on the other \
-             classes (queries and candidates restricted to them, stages re-run) is chosen, then its \
-             queries of the held-out class are ranked against the whole set. Worst = the lowest \
-             fold of each column.\n",
+             classes (queries and candidates restricted to them, stages re-run; the histogram \
+             windows are calibrated once on every ranked shape, without labels) is chosen, then \
+             its queries of the held-out class are ranked against the whole set. Worst = the \
+             lowest fold of each column.\n",
             self.folds.len()
         );
+        if !self.skipped.is_empty() {
+            let _ = writeln!(
+                s,
+                "Left out (no other class has a query with a relevant shape, so no held-in \
+                 figure): {}.\n",
+                self.skipped.join(", ")
+            );
+        }
         let _ = writeln!(
             s,
             "| held out | chosen | held-in All | runner-up (held-in All) | {} |",
