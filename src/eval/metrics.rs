@@ -11,7 +11,10 @@
 //!   (trapezoid) equals the Mann–Whitney probability `P(d⁺ < d⁻) + ½ P(d⁺ = d⁻)`;
 //! * PR curve of a query: (recall, precision) after each rank of the tie-broken ranking;
 //! * EER: the error rate where FPR = 1 − TPR on the ROC of the *pooled* (query, other) distances of
-//!   a group of queries (as in the reference), linearly interpolated between ROC vertices.
+//!   a group of queries (pooled as the reference pools them), linearly interpolated between ROC
+//!   vertices. The reference's values look like `(FPR + FNR) / 2` at a vertex instead (most of
+//!   them are multiples of neither `1/N` nor `1/P`), which can differ from this by up to half
+//!   a step of the ROC (half of `1/N` or `1/P` of the group's negative or positive pairs).
 
 use std::cmp::Ordering;
 use std::collections::BTreeMap;

@@ -679,7 +679,15 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
         reference_path.as_deref(),
     );
     if !rerank_notes.is_empty() {
-        markdown.push_str(&format!("\n## Re-ranking\n\n{rerank_notes}"));
+        // A stage leaves ranks in its rows, not distances: the pooled ROC of such a
+        // configuration thresholds ranks across queries, which its EER column reports.
+        markdown.push_str(&format!(
+            "\n## Re-ranking\n\nThe rows of a configuration with stages hold ranks, not \
+             distances: its pooled ROC and EER threshold the rank a stage gave each shape \
+             (the same rank cut for every query), so they are not comparable with the EER of \
+             a configuration without stages. mAP and the per-query AUC are unaffected.\n\n\
+             {rerank_notes}"
+        ));
     }
     if let Some(ch) = &check {
         markdown.push_str(&format!("\n{}", ch.markdown()));

@@ -93,6 +93,7 @@ impl App {
         };
         let digest: [u8; 32] = Sha256::digest(&up.bytes).into();
         if let Some(r) = self.existing(&digest).await? {
+            self.enter_stored(&r.id).await;
             return Ok(Queued::Stored(Box::new(r)));
         }
         let hint = up.hint.map(|f| f.name().to_string());

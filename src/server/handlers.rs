@@ -419,8 +419,7 @@ pub async fn get_mesh(
             }
             Some(to) => {
                 let deadline = super::router::deadline_of(&req);
-                let out = app.convert_original(&rec, to, deadline).await?;
-                app.downloads.reserve(out.len()).await.body(out)
+                app.convert_original(&rec, to, deadline).await?
             }
         };
         body.into_response()

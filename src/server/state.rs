@@ -314,6 +314,7 @@ impl App {
         let t0 = Instant::now();
         let digest: [u8; 32] = Sha256::digest(&up.bytes).into();
         if let Some(r) = self.existing(&digest).await? {
+            self.enter_stored(&r.id).await;
             return Ok(r);
         }
         let app = self.clone();
@@ -332,13 +333,9 @@ impl App {
         Ok(res)
     }
 
-    /// The stored shape with this content hash, as an ingest answer (`created: false`), in
-    /// this node's scan when its shard is held here. An insert can store a shape and still
-    /// answer an error (a flush that failed after the commit, a commit whose acknowledgement
-    /// was lost): that ingest answered 500 and its shape never entered the scan; the retry
-    /// enters it ([`App::apply_insert`], a look-up when it is there).
+    /// The stored shape with this content hash, as an ingest answer (`created: false`).
     pub(super) async fn existing(
-        self: &Arc<Self>,
+        &self,
         digest: &[u8; 32],
     ) -> Result<Option<IngestResult>, ApiError> {
         if let Some(id) = self
@@ -348,7 +345,6 @@ impl App {
             .map_err(ApiError::from)?
         {
             if let Some(rec) = self.store.get(&id).await.map_err(ApiError::from)? {
-                self.apply_insert(&id).await?;
                 return Ok(Some(IngestResult {
                     id,
                     created: false,
@@ -361,8 +357,20 @@ impl App {
         Ok(None)
     }
 
+    /// A shape found stored by an upload of the same bytes, entered into the scan when it is
+    /// not there: an insert can store a shape and still answer an error (a flush that failed
+    /// after the commit, a commit whose acknowledgement was lost), and that ingest answered 500
+    /// with its shape left out of the scan. A look-up when it is there. Called from async code
+    /// only, never from a thread of the heavy pool (a recomputation would wait for that pool).
+    /// Best effort: the answer is the stored shape's either way, a failure is logged.
+    pub(super) async fn enter_stored(self: &Arc<Self>, id: &str) {
+        if let Err(e) = self.apply_insert(id).await {
+            tracing::warn!(id, error = %e.detail, "a stored shape could not enter the scan");
+        }
+    }
+
     fn ingest_blocking(
-        self: &Arc<Self>,
+        &self,
         up: Upload,
         digest: [u8; 32],
         t0: Instant,
@@ -536,13 +544,15 @@ impl App {
     /// search refused with 503 while 24 conversions queued in the cheap lane). A running
     /// conversion is counted by admission as work outside the lanes, so a heavy job does not
     /// borrow the cheap lane's cores meanwhile; each one written is counted in
-    /// `shapeseek_conversions_total`.
+    /// `shapeseek_conversions_total`. The output is answered under the download budget
+    /// (`limits::ResponseBudget`), its room reserved while the conversion still holds its turn:
+    /// so outputs waiting for room are at most as many as conversions run at once.
     pub async fn convert_original(
         self: &Arc<Self>,
         rec: &ShapeRecord,
         to: Format,
         deadline: Option<Instant>,
-    ) -> Result<Vec<u8>, ApiError> {
+    ) -> Result<axum::body::Body, ApiError> {
         let timeout = || ApiError {
             retry_after: Some(self.cfg.retry_after_secs),
             ..ApiError::new(
@@ -569,8 +579,10 @@ impl App {
         let (cancel, guard) = Cancel::for_request(deadline);
         let format = rec.format.clone();
         let counted = self.admission.outside_work();
+        // The turn lives with the blocking work (an abandoned request does not free it while
+        // the work runs on) and comes back with its output.
         let out = tokio::task::spawn_blocking(move || {
-            let _permit = permit;
+            let permit = permit;
             let _counted = counted;
             cancel.check()?;
             let mesh = super::load::read_original(&format, &orig).map_err(ApiError::internal)?;
@@ -579,12 +591,15 @@ impl App {
             let mut out = Vec::new();
             crate::mesh::write::write_mesh(&mesh, to, &mut out).map_err(ApiError::internal)?;
             metrics::counter!("shapeseek_conversions_total").increment(1);
-            Ok(out)
+            Ok::<_, ApiError>((out, permit))
         })
         .await
         .map_err(ApiError::internal)?;
         guard.done();
-        out
+        let (out, turn) = out?;
+        let room = self.downloads.reserve(out.len()).await;
+        drop(turn);
+        Ok(room.body(out))
     }
 
     /// Analyses an uploaded query mesh on the pool (nothing is stored); the re-ranking

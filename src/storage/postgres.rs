@@ -82,8 +82,9 @@ fn io_runtime() -> Result<tokio::runtime::Handle> {
 }
 
 /// The URL's settings, with two bounds where it sets none, so that a database that went away
-/// answers an error (503 `storage.unavailable`) instead of holding the request's thread: a new
-/// connection gives up after [`CONNECT_TIMEOUT`], and a statement whose bytes the server no
+/// answers an error (503 `storage.unavailable`) instead of holding the request's thread: an
+/// attempt to connect to a host gives up after [`CONNECT_TIMEOUT`] (each host of a multi-host
+/// URL in turn; the pool sets no limit of its own over them), and a statement whose bytes the server no
 /// longer acknowledges (a host cut off) after [`TCP_USER_TIMEOUT`] (the system's default is
 /// about a quarter of an hour of retransmissions). Neither bounds a statement the server is
 /// working on.
@@ -164,7 +165,6 @@ impl PgStore {
         let pool = Pool::builder(mgr)
             .max_size(opts.max_size.max(1))
             .wait_timeout(Some(POOL_WAIT))
-            .create_timeout(Some(CONNECT_TIMEOUT))
             .runtime(Runtime::Tokio1)
             .build()
             .map_err(|e| storage_err(format!("postgres: building the pool: {e}")))?;
