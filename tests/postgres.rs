@@ -526,6 +526,25 @@ async fn a_database_that_went_away_is_unavailable_not_internal() {
         Err(shapeseek::Error::StorageUnavailable(_)) => {}
         other => panic!("insert: {other:?}"),
     }
+    // A login the server refuses is no outage: the same request would fail again (500).
+    let stranger = format!("postgres://no_such_role_here@{host_port}/{}", db.name);
+    match PgStore::connect(&stranger, PoolOptions::default()).await {
+        Err(shapeseek::Error::Storage(m)) => println!("a refused login: {m}"),
+        Err(e) => panic!("a refused login: {e:?}"),
+        Ok(_) => panic!("a role that does not exist logged in"),
+    }
+    // Nor is a host name that does not resolve (`.invalid` never does, RFC 6761): a mistyped
+    // host would answer 503 "retry later" for ever.
+    match PgStore::connect(
+        "postgres://u@no-such-host.invalid/db",
+        PoolOptions::default(),
+    )
+    .await
+    {
+        Err(shapeseek::Error::Storage(m)) => println!("an unknown host: {m}"),
+        Err(e) => panic!("an unknown host: {e:?}"),
+        Ok(_) => panic!("connected to an unknown host"),
+    }
     // A database that cannot be reached when a node starts.
     let closed = {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();

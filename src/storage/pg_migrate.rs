@@ -73,22 +73,42 @@ pub(crate) fn pg(what: &str) -> impl Fn(tokio_postgres::Error) -> Error + '_ {
 }
 
 /// True when the statement failed because the database could not be reached or put it off,
-/// so that the same request may succeed later (503, not 500): the connection closed, could not
-/// be opened or timed out (the driver's I/O errors), or the server answered with a connection
-/// exception (SQLSTATE class 08), a shutdown or start-up in progress (57P01–57P03), too many
-/// connections (53300), a serialization failure or a deadlock (40001, 40P01).
+/// so that the same request may succeed later (503, not 500): the connection closed, or an I/O
+/// error of the network's kind (refused, reset, aborted, broken, timed out, unreachable), or
+/// the server answered with a connection exception (SQLSTATE class 08 but 08P01, a protocol
+/// violation), a shutdown or start-up in progress (57P01–57P03), too many connections (53300),
+/// a serialization failure or a deadlock (40001, 40P01). Not: a host name that does not
+/// resolve, a value too large to send, a failed login — the same request would fail again.
 pub(crate) fn transient(e: &tokio_postgres::Error) -> bool {
+    use std::io::ErrorKind as K;
     match e.code() {
         Some(state) => {
             let code = state.code();
-            code.starts_with("08")
+            (code.starts_with("08") && code != "08P01")
                 || matches!(
                     code,
                     "57P01" | "57P02" | "57P03" | "53300" | "40001" | "40P01"
                 )
         }
         None => {
-            e.is_closed() || std::error::Error::source(e).is_some_and(|s| s.is::<std::io::Error>())
+            e.is_closed()
+                || std::error::Error::source(e)
+                    .and_then(|s| s.downcast_ref::<std::io::Error>())
+                    .is_some_and(|io| {
+                        matches!(
+                            io.kind(),
+                            K::ConnectionRefused
+                                | K::ConnectionReset
+                                | K::ConnectionAborted
+                                | K::NotConnected
+                                | K::BrokenPipe
+                                | K::TimedOut
+                                | K::UnexpectedEof
+                                | K::HostUnreachable
+                                | K::NetworkUnreachable
+                                | K::NetworkDown
+                        )
+                    })
         }
     }
 }
