@@ -1098,7 +1098,7 @@ fn head_on_a_stored_mesh_answers_its_headers_without_converting() {
 /// bytes of downloads held at once stay within `max_inflight_response_bytes`: a second download
 /// of the same original waits for the first's room and is then served whole. (Before, the
 /// silent client kept its connection and the original's memory for as long as TCP kept the
-/// connection, and downloads had no bound: forty such clients of a 13 MB original held 1 GB.)
+/// connection, and downloads had no bound: forty such clients of a 13 MB original held about 1 GiB.)
 #[test]
 fn a_client_that_reads_nothing_of_a_download_is_cut_off_and_downloads_are_bounded() {
     use std::io::{Read, Write};

@@ -112,7 +112,7 @@ impl BodyGate {
 /// response's body ([`Reserved::body`]), so it ends when hyper has taken the last byte (it then
 /// holds one frame's worth at most) or the connection closed, not when the handler returns. (Before, every download read its whole
 /// original with no bound: forty clients that asked for a 13 MB original and read nothing held
-/// about 1 GB until they left.) A download larger than the whole budget takes all of it.
+/// about 1 GiB until they left.) A download larger than the whole budget takes all of it.
 pub struct ResponseBudget {
     /// Budget in KiB.
     kib: Arc<Semaphore>,
