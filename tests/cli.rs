@@ -585,6 +585,14 @@ fn usage_faults_are_refused_plainly() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // A search with no query names both ways of giving one (it named `<FILE>` alone), and
+    // refuses both at once.
+    let o = run(&["search"]);
+    assert_eq!(o.code, 2, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("<FILE|--id <ID>>"), "{}", o.stderr);
+    let o = run(&["search", "x.obj", "--id", "0000000000000001"]);
+    assert_eq!(o.code, 2, "{}{}", o.stdout, o.stderr);
+    assert!(o.stderr.contains("cannot be used with"), "{}", o.stderr);
     // A benchmark over zero shapes (it panicked on a remainder by zero).
     let o = run(&["bench", "search", "--sizes", "0"]);
     assert_eq!(o.code, 65, "{}{}", o.stdout, o.stderr);

@@ -8,15 +8,13 @@ use clap::Args;
 use serde_json::{json, Value};
 use std::path::PathBuf;
 
-/// `shapeseek search` flags.
+/// `shapeseek search` flags. The query is a file or a stored shape, one of them: the group
+/// makes clap name both when neither is given (`<FILE|--id <ID>>`; it named `<FILE>` alone).
 #[derive(Debug, Args)]
+#[command(group(clap::ArgGroup::new("query").required(true).args(["file", "id"])))]
 pub struct SearchArgs {
     /// The query mesh (OBJ, glTF/GLB, PLY, OFF, STL).
-    #[arg(
-        required_unless_present = "id",
-        conflicts_with = "id",
-        value_name = "FILE"
-    )]
+    #[arg(value_name = "FILE")]
     pub file: Option<PathBuf>,
     /// Search with a stored shape instead (it is left out of the hits).
     #[arg(long)]
