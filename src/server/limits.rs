@@ -110,9 +110,10 @@ impl BodyGate {
 /// (the size is in the record) or once its conversion is written, waiting for room (the
 /// request's deadline ends the wait: 503 `request.timeout`). The reservation travels with the
 /// response's body ([`Reserved::body`]), so it ends when hyper has taken the last byte (it then
-/// holds one frame's worth at most) or the connection closed, not when the handler returns. (Before, every download read its whole
-/// original with no bound: forty clients that asked for a 13 MB original and read nothing held
-/// about 1 GiB until they left.) A download larger than the whole budget takes all of it.
+/// holds one frame's worth at most) or the connection closed, not when the handler returns.
+/// (Before, every download read its whole original with no bound: forty clients that asked for
+/// a 13 MB original and read nothing held about 1 GiB until they left.) A download larger than
+/// the whole budget takes all of it.
 pub struct ResponseBudget {
     /// Budget in KiB.
     kib: Arc<Semaphore>,
@@ -196,11 +197,6 @@ impl ResponseBudget {
             .await
             .expect("the budget's semaphore is never closed");
         Reserved(permit)
-    }
-
-    /// KiB of the budget free now.
-    pub fn available_kib(&self) -> usize {
-        self.kib.available_permits()
     }
 }
 

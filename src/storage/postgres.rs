@@ -84,10 +84,10 @@ fn io_runtime() -> Result<tokio::runtime::Handle> {
 /// The URL's settings, with two bounds where it sets none, so that a database that went away
 /// answers an error (503 `storage.unavailable`) instead of holding the request's thread: an
 /// attempt to connect to a host gives up after [`CONNECT_TIMEOUT`] (each host of a multi-host
-/// URL in turn; the pool sets no limit of its own over them), and a statement whose bytes the server no
-/// longer acknowledges (a host cut off) after [`TCP_USER_TIMEOUT`] (the system's default is
-/// about a quarter of an hour of retransmissions). Neither bounds a statement the server is
-/// working on.
+/// URL in turn; the pool sets no limit of its own over them), and a statement whose bytes the
+/// server no longer acknowledges (a host cut off) after [`TCP_USER_TIMEOUT`] (the system's
+/// default is about a quarter of an hour of retransmissions). Neither bounds a statement the
+/// server is working on.
 fn parse_url(url: &str) -> Result<tokio_postgres::Config> {
     let mut cfg = url
         .parse::<tokio_postgres::Config>()
