@@ -3,7 +3,7 @@
 # docker (run as root; needs debootstrap and a Debian mirror):
 #
 #   localhost/debian:bookworm              Debian bookworm (minbase): the runtime base
-#   localhost/shapeseek-builder:bookworm   the same plus gcc, libc6-dev, ca-certificates and the
+#   localhost/shapeseek-builder:bookworm   the same plus gcc, g++, libc6-dev, ca-certificates and the
 #                                          host's Rust toolchain (rustc/cargo >= 1.85)
 #
 # Usage: docker/local-bases.sh [WORKDIR]    (ENGINE=docker to use docker instead of podman;
@@ -27,7 +27,7 @@ fi
 
 if ! "$ENGINE" image inspect localhost/shapeseek-builder:bookworm >/dev/null 2>&1; then
   rm -rf "$WORK/builder"
-  debootstrap --variant=minbase --include=gcc,libc6-dev,ca-certificates \
+  debootstrap --variant=minbase --include=gcc,g++,libc6-dev,ca-certificates \
     bookworm "$WORK/builder" "$MIRROR"
   rm -rf "$WORK/builder/var/cache/apt/archives/"*.deb "$WORK/builder/var/lib/apt/lists/"*
   mkdir -p "$WORK/builder/usr/local/rust"

@@ -285,6 +285,7 @@ fn prepare_report() -> PrepareReport {
         handle_cut: None,
         capped: None,
         smooth_steps: None,
+        decimated: None,
     }
 }
 

@@ -5,6 +5,7 @@
 
 pub(crate) mod buckets;
 pub mod cap;
+pub mod decimate;
 pub mod generate;
 pub mod prepare;
 pub mod read;

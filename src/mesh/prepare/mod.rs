@@ -26,6 +26,9 @@
 //!    opposite directions; per patch the orientation of the larger area is kept
 //!    (`reoriented_faces` counts the flips). Capping reads the boundary's direction: a hole next
 //!    to a flipped face was otherwise skipped.
+//!    5″. **Simplification** (optional, [`PrepareOptions::max_vertices`]): a kept surface with
+//!    more vertices than the budget is simplified to it ([`crate::mesh::decimate`]) and
+//!    prepared again from step 3 (`decimated` in the report).
 //!    5-. **Smoothing** (optional, [`PrepareOptions::smooth`]): Taubin's low-pass filter
 //!    ([`crate::mesh::smooth`]) removes noise at the scale of the edges before the steps that
 //!    read the geometry; the report gives the step pairs taken (`smooth_steps`).
@@ -43,6 +46,7 @@
 //! fall into neighbouring grid cells.
 
 use super::cap::{cap_boundaries, CapOptions, CapStats};
+use super::decimate::{decimate, DecimateSummary};
 use super::smooth::{taubin_counted, SmoothOptions};
 use super::topology::{cut_handles_with_map, HandleCutOptions};
 use super::{cross, norm, sub, Mesh};
@@ -119,7 +123,19 @@ pub struct PrepareOptions {
     /// when `None`, so the keys of preparations without it are unchanged.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub smooth: Option<SmoothOptions>,
+    /// Optional **vertex budget** (step 5″, [`crate::mesh::decimate`]): a kept surface with
+    /// more vertices than this is simplified to at most this many (quadric edge collapses that
+    /// keep its topology) before smoothing, capping, handle cutting and normalisation, so the
+    /// cost of its spectrum is bounded. Default `None` (every mesh at full resolution); omitted
+    /// from the JSON when `None`, so the keys of preparations without it are unchanged. Must
+    /// be at least [`MIN_VERTEX_BUDGET`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_vertices: Option<usize>,
 }
+
+/// The smallest vertex budget [`PrepareOptions::max_vertices`] accepts: the signatures read
+/// about 100 eigenpairs, which a few hundred vertices cannot resolve.
+pub const MIN_VERTEX_BUDGET: usize = 1000;
 
 impl Default for PrepareOptions {
     fn default() -> Self {
@@ -134,6 +150,7 @@ impl Default for PrepareOptions {
             cut_handles: None,
             cap_boundaries: None,
             smooth: None,
+            max_vertices: None,
         }
     }
 }
@@ -226,6 +243,13 @@ pub struct PrepareReport {
     /// or more with `until_settled`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub smooth_steps: Option<usize>,
+    /// The simplification step, when the kept surface had more vertices than
+    /// [`PrepareOptions::max_vertices`]. The cleaning counts (`vertices_in` …
+    /// `dropped_area_fraction`) then describe the input before it and the rest the output;
+    /// the vertices it removed are counted here only, so the count identities above do not
+    /// hold.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub decimated: Option<DecimateSummary>,
 }
 
 /// Cleans `mesh` (see the [module documentation](crate::mesh::prepare)) and reports what was done.
@@ -458,6 +482,37 @@ pub fn prepare_with_map(
     }
     // 5′. Coherent orientation: faces flip in place, so `map` holds.
     let reoriented_faces = orient::orient_coherently(&vertices, &mut faces);
+    let cleaning = Cleaning {
+        vertices_in: n,
+        faces_in: mesh.faces.len(),
+        welded_vertices,
+        degenerate_faces,
+        duplicate_faces,
+        component_faces_dropped,
+        unreferenced_vertices,
+        reoriented_faces,
+        components,
+        components_kept,
+        dropped_area_fraction,
+    };
+    // 5″. Simplification to the vertex budget (optional): the simplified mesh is prepared
+    // again without it (what the collapses left is cleaned, then the remaining steps run), and
+    // the maps are composed.
+    let kept = Mesh::new(vertices, faces);
+    if let Some((simple, simple_map, summary)) =
+        opts.max_vertices.and_then(|budget| decimate(&kept, budget))
+    {
+        let inner = PrepareOptions {
+            weld_tolerance: None,
+            max_vertices: None,
+            ..opts.clone()
+        };
+        let (out, mut r, map2) = prepare_with_map(&simple, &inner)?;
+        cleaning.carry_into(&mut r, mesh);
+        r.decimated = Some(summary);
+        return Ok((out, r, compose(&map, &simple_map, &map2)));
+    }
+    let (mut vertices, mut faces) = (kept.vertices, kept.faces);
     // 5-. Smoothing (optional): vertices move, none is added or removed, so `map` holds.
     let mut smooth_steps = None;
     if let Some(sm) = &opts.smooth {
@@ -485,6 +540,7 @@ pub fn prepare_with_map(
                     cut_handles: None,
                     cap_boundaries: None,
                     smooth: None,
+                    max_vertices: None,
                     ..opts.clone()
                 };
                 let (out, mut r, map2) = prepare_with_map(&cut_mesh, &inner)?;
@@ -499,29 +555,12 @@ pub fn prepare_with_map(
                     skipped: None,
                     ms: t0.elapsed().as_secs_f64() * 1e3,
                 });
-                r.vertices_in = n;
-                r.faces_in = mesh.faces.len();
-                r.welded_vertices = welded_vertices;
-                r.degenerate_faces += degenerate_faces;
-                r.duplicate_faces += duplicate_faces;
-                r.component_faces_dropped += component_faces_dropped;
-                // The vertices compaction dropped (`compacted` also holds the caps' vertices).
-                r.unreferenced_vertices += unreferenced_vertices;
-                r.reoriented_faces = reoriented_faces;
-                r.components = components;
-                r.components_kept = components_kept;
-                r.dropped_area_fraction = dropped_area_fraction;
-                r.read_repairs = mesh.repairs.clone();
+                // The vertices compaction dropped (`compacted` also holds the caps' vertices)
+                // are the outer pass's `unreferenced_vertices`.
+                cleaning.carry_into(&mut r, mesh);
                 r.capped = capped;
                 r.smooth_steps = smooth_steps;
-                let composed = map
-                    .iter()
-                    .map(|m| {
-                        m.and_then(|a| cut_map[a as usize])
-                            .and_then(|b| map2[b as usize])
-                    })
-                    .collect();
-                return Ok((out, r, composed));
+                return Ok((out, r, compose(&map, &cut_map, &map2)));
             }
             Ok((_, rep, _)) => {
                 handle_cut = Some(HandleCutSummary {
@@ -600,8 +639,55 @@ pub fn prepare_with_map(
         handle_cut,
         capped,
         smooth_steps,
+        decimated: None,
     };
     Ok((out, report, map))
+}
+
+/// The cleaning counts of a pass of [`prepare_with_map`] (steps 2–5′), carried into the report
+/// of the pass it runs again on a changed mesh (after simplification or handle cutting).
+struct Cleaning {
+    vertices_in: usize,
+    faces_in: usize,
+    welded_vertices: usize,
+    degenerate_faces: usize,
+    duplicate_faces: usize,
+    component_faces_dropped: usize,
+    unreferenced_vertices: usize,
+    reoriented_faces: usize,
+    components: usize,
+    components_kept: usize,
+    dropped_area_fraction: f64,
+}
+
+impl Cleaning {
+    /// `r`, the inner pass's report, with the input's counts: the outer pass's sizes, welds,
+    /// components and orientation; the faces and vertices both passes dropped, added up.
+    fn carry_into(&self, r: &mut PrepareReport, input: &Mesh) {
+        r.vertices_in = self.vertices_in;
+        r.faces_in = self.faces_in;
+        r.welded_vertices = self.welded_vertices;
+        r.degenerate_faces += self.degenerate_faces;
+        r.duplicate_faces += self.duplicate_faces;
+        r.component_faces_dropped += self.component_faces_dropped;
+        r.unreferenced_vertices += self.unreferenced_vertices;
+        r.reoriented_faces = self.reoriented_faces;
+        r.components = self.components;
+        r.components_kept = self.components_kept;
+        r.dropped_area_fraction = self.dropped_area_fraction;
+        r.read_repairs = input.repairs.clone();
+    }
+}
+
+/// The input-to-output map through two passes: the outer pass's `map`, the step between
+/// (`step`: its mesh to the changed mesh) and the inner pass's `inner`.
+fn compose(map: &[Option<u32>], step: &[Option<u32>], inner: &[Option<u32>]) -> Vec<Option<u32>> {
+    map.iter()
+        .map(|m| {
+            m.and_then(|a| step[a as usize])
+                .and_then(|b| inner[b as usize])
+        })
+        .collect()
 }
 
 fn validate_options(opts: &PrepareOptions) -> Result<()> {
@@ -627,6 +713,13 @@ fn validate_options(opts: &PrepareOptions) -> Result<()> {
     if let Some(c) = &opts.cap_boundaries {
         c.validate()
             .map_err(|e| Error::InvalidArgument(format!("cap_boundaries: {e}")))?;
+    }
+    if let Some(b) = opts.max_vertices {
+        if b < MIN_VERTEX_BUDGET {
+            return Err(Error::InvalidArgument(format!(
+                "max_vertices must be at least {MIN_VERTEX_BUDGET}, got {b}"
+            )));
+        }
     }
     if let Some(c) = &opts.smooth {
         c.validate()
