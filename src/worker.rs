@@ -69,8 +69,7 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
     };
     let store = PgStore::connect(store_url, Default::default()).await?;
     let bus = Bus::connect(queue_url, cfg.server.queue_options()).await?;
-    let mut engine = crate::index::default_engine();
-    engine.analyze.eigen.k = cfg.server.eigenpairs;
+    let engine = cfg.server.engine();
     let limits = crate::mesh::read::ReadLimits {
         max_bytes: cfg.server.max_body_bytes,
         max_vertices: cfg.server.max_vertices,

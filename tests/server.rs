@@ -959,6 +959,72 @@ fn restart_keeps_shapes_and_calibration() {
     s.stop();
 }
 
+/// A mesh above `analysis_vertex_budget` is analysed simplified to it (`decimated` in its
+/// preparation report) and stored as sent; a search by its upload finds it first; a mesh within
+/// the budget is analysed whole; the budget is in `/v1/index`; one below the least is refused.
+#[test]
+fn a_mesh_above_the_vertex_budget_is_analysed_simplified_and_stored_as_sent() {
+    let bad = ServerConfig {
+        analysis_vertex_budget: 999,
+        ..Default::default()
+    };
+    let e = bad.validate().expect_err("a budget under 1000").to_string();
+    assert!(e.contains("analysis_vertex_budget"), "{e}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), GRACE_SECS, |c| c.analysis_vertex_budget = 1500);
+    let a = s.addr;
+    assert_eq!(
+        get(a, "/v1/index").json()["signature_spec"]["vertex_budget"],
+        1500
+    );
+    let big = bumpy_torus(80, 40);
+    assert_eq!(big.vertices.len(), 3200);
+    let bytes = bytes_of(&big, Format::Off);
+    let r = ingest(a, "big", "", &bytes, "application/off");
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    let v = r.json();
+    let shape = &v["shape"];
+    let d = &shape["prepare"]["decimated"];
+    assert_eq!(
+        (d["budget"].as_u64(), d["vertices_before"].as_u64()),
+        (Some(1500), Some(3200)),
+        "{v}"
+    );
+    let after = d["vertices_after"].as_u64().unwrap();
+    assert!((1350..=1500).contains(&after), "{v}");
+    assert_eq!(shape["prepare"]["vertices_in"], 3200);
+    assert_eq!(shape["prepare"]["vertices_out"].as_u64(), Some(after));
+    assert_eq!(shape["vertices"], 3200, "the record describes the original");
+    let id = shape["id"].as_str().unwrap().to_string();
+    assert_eq!(get(a, &format!("/v1/shapes/{id}/mesh")).body, bytes);
+    assert_eq!(
+        get(a, &format!("/v1/shapes/{id}")).json()["prepare"]["decimated"],
+        *d
+    );
+
+    let small = bytes_of(&icosphere(3), Format::Off);
+    let r = ingest(a, "small", "", &small, "application/off").json();
+    assert!(r["shape"]["prepare"].get("decimated").is_none(), "{r}");
+
+    // The same torus, sent again as another file (rotated vertex order): found first.
+    let mut turned = big.clone();
+    turned.vertices.rotate_left(7);
+    for f in &mut turned.faces {
+        *f = f.map(|i| (i + 3200 - 7) % 3200);
+    }
+    let r = http(
+        a,
+        "POST",
+        "/v1/search?top_k=2",
+        Some("application/off"),
+        &bytes_of(&turned, Format::Off),
+    );
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["hits"][0]["id"], id.as_str());
+    s.stop();
+}
+
 /// First-stage scores (`rerank: []`) of `id`'s search against the `n` nearest other shapes,
 /// by name.
 fn scan_scores(addr: SocketAddr, id: &str, n: usize) -> Vec<(String, u64)> {

@@ -92,6 +92,10 @@ pub struct EvalArgs {
     /// what scaling does to each kernel (paper Table 2's Scale row).
     #[arg(long)]
     pub no_normalize: bool,
+    /// Most vertices a shape is analysed at: a larger mesh is simplified to this many before
+    /// its spectrum, as the server does (`analysis_vertex_budget`). 0: full resolution.
+    #[arg(long, default_value_t = shapeseek::presets::ANALYSIS_VERTEX_BUDGET)]
+    pub vertex_budget: usize,
     /// Write every configuration's all-pairs dissimilarity matrix (re-ranked rows: ranks) as JSON
     /// here, with the manifest's ids, classes and transforms, for analysis outside shapeseek.
     #[arg(long)]
@@ -129,6 +133,13 @@ impl EvalArgs {
                 )))
             }
         };
+        let least = shapeseek::mesh::prepare::MIN_VERTEX_BUDGET;
+        if self.vertex_budget != 0 && self.vertex_budget < least {
+            return Err(Error::InvalidArgument(format!(
+                "--vertex-budget {}: 0 (none) or at least {least}",
+                self.vertex_budget
+            )));
+        }
         let loco = match self.protocol.as_str() {
             "standard" => None,
             "loco" | "leave-one-class-out" => Some(LocoOptions {
@@ -163,6 +174,7 @@ impl EvalArgs {
             laplacian,
             window_percentile: self.window_percentile,
             no_normalize: self.no_normalize,
+            vertex_budget: (self.vertex_budget > 0).then_some(self.vertex_budget),
             matrices: self.matrices.clone(),
             loco,
             check_encoding: self.check_encoding,

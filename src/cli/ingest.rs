@@ -748,8 +748,7 @@ mod local {
                 shard: defaults.shard,
                 ..serve.to_config_from(env)?
             };
-            let mut engine = shapeseek::index::default_engine();
-            engine.analyze.eigen.k = cfg.eigenpairs;
+            let engine = cfg.engine();
             let rt = tokio::runtime::Builder::new_multi_thread()
                 .worker_threads(2)
                 .enable_all()

@@ -116,6 +116,10 @@ pub struct EvalOptions {
     pub window_percentile: Option<f64>,
     /// Keep every mesh at its own size (no unit-area normalisation).
     pub no_normalize: bool,
+    /// Most vertices a shape is analysed at (a larger one is simplified first,
+    /// [`crate::mesh::decimate`]); `None`: full resolution. Default: the server's,
+    /// [`crate::presets::ANALYSIS_VERTEX_BUDGET`].
+    pub vertex_budget: Option<usize>,
     /// Write every configuration's all-pairs dissimilarity matrix (re-ranked rows: ranks) as
     /// JSON here.
     pub matrices: Option<PathBuf>,
@@ -147,6 +151,7 @@ impl EvalOptions {
             sample_seed: 0,
             laplacian: crate::laplace::LaplacianKind::Cotangent,
             no_normalize: false,
+            vertex_budget: Some(crate::presets::ANALYSIS_VERTEX_BUDGET),
             window_percentile: None,
             matrices: None,
             loco: None,
@@ -285,6 +290,7 @@ fn evaluate_in_pool(args: &EvalOptions) -> Result<EvalOutcome> {
     let mut opts = AnalyzeOptions::default();
     opts.eigen.k = args.k;
     opts.prepare.normalize_area = !args.no_normalize;
+    opts.prepare.max_vertices = args.vertex_budget;
     opts.laplacian = args.laplacian;
     let opts_json = serde_json::to_vec(&opts).expect("options serialise");
     let limits = ReadLimits::default();

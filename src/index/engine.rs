@@ -32,11 +32,14 @@ pub fn default_engine() -> Engine {
 }
 
 impl Engine {
-    /// The product default ([`presets::default_config`], default analysis options).
+    /// The product default ([`presets::default_config`], default analysis options with the
+    /// vertex budget [`presets::ANALYSIS_VERTEX_BUDGET`]).
     pub fn new() -> Self {
+        let mut analyze = AnalyzeOptions::default();
+        analyze.prepare.max_vertices = Some(presets::ANALYSIS_VERTEX_BUDGET);
         Self {
             config: presets::default_config(),
-            analyze: AnalyzeOptions::default(),
+            analyze,
         }
     }
 
@@ -81,11 +84,13 @@ impl Engine {
         }
     }
 
-    /// The signature spec as JSON (for `/v1/index`).
+    /// The signature spec as JSON (for `/v1/index`), with the vertex budget of the analysis
+    /// (`null`: none).
     pub fn spec_json(&self) -> serde_json::Value {
         serde_json::json!({
             "signature": self.config.signature,
             "eigenpairs": self.analyze.eigen.k,
+            "vertex_budget": self.analyze.prepare.max_vertices,
         })
     }
 

@@ -113,6 +113,11 @@ pub struct ServerConfig {
     /// Eigenpairs computed per shape for its signature (changing it recomputes the stored
     /// signatures from the stored originals at the next start).
     pub eigenpairs: usize,
+    /// Most vertices a shape is analysed at: a larger mesh is simplified to this many before
+    /// its spectrum ([`crate::mesh::decimate`]); its original is stored as sent. 0: every mesh
+    /// at full resolution (time and memory grow with it: about a minute and 1 GiB at 180 000
+    /// vertices). Stored signatures are not recomputed when it changes.
+    pub analysis_vertex_budget: usize,
 }
 
 /// Most CPU workers a node may be configured with ([`ServerConfig::workers`]).
@@ -156,11 +161,22 @@ impl Default for ServerConfig {
             shutdown_grace_secs: 30.0,
             log_format: "text".into(),
             eigenpairs: 100,
+            analysis_vertex_budget: crate::presets::ANALYSIS_VERTEX_BUDGET,
         }
     }
 }
 
 impl ServerConfig {
+    /// The product engine ([`crate::index::default_engine`]) with this configuration's
+    /// eigenpairs and vertex budget: what `serve`, `worker` and `ingest --data` analyse with.
+    pub fn engine(&self) -> crate::index::Engine {
+        let mut engine = crate::index::default_engine();
+        engine.analyze.eigen.k = self.eigenpairs;
+        engine.analyze.prepare.max_vertices =
+            (self.analysis_vertex_budget > 0).then_some(self.analysis_vertex_budget);
+        engine
+    }
+
     /// Defaults, then the TOML `file` (if any), then `SHAPESEEK_*` variables from `env`.
     pub fn load(
         file: Option<&std::path::Path>,
@@ -271,6 +287,13 @@ impl ServerConfig {
         }
         if !(self.recalibrate_fraction.is_finite() && self.recalibrate_fraction >= 0.0) {
             return bad("recalibrate_fraction must be >= 0");
+        }
+        let budget = self.analysis_vertex_budget;
+        let least = crate::mesh::prepare::MIN_VERTEX_BUDGET;
+        if budget != 0 && budget < least {
+            return bad(&format!(
+                "analysis_vertex_budget must be 0 (none) or at least {least}, got {budget}"
+            ));
         }
         if !(2..=2000).contains(&self.eigenpairs) {
             return bad("eigenpairs must be in 2..=2000");

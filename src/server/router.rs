@@ -287,8 +287,7 @@ impl Running {
 
 /// Starts the server with the product engine (see [`crate::index::default_engine`]).
 pub async fn start(cfg: ServerConfig) -> Result<Running> {
-    let mut engine = crate::index::default_engine();
-    engine.analyze.eigen.k = cfg.eigenpairs;
+    let engine = cfg.engine();
     start_with(cfg, engine).await
 }
 
