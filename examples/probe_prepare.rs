@@ -8,7 +8,8 @@
 //!
 //! Writes `OUT_DIR/<file stem>.obj` and prints `<file stem>: <PrepareReport JSON>` per mesh.
 //! With `NOCAP=1` in the environment it stops before capping and handle cutting (smoothing
-//! only), so the loops capping would see can be examined.
+//! only), so the loops capping would see can be examined; `BUDGET=N` sets the vertex budget
+//! (default the server's, 0: full resolution).
 
 use shapeseek::mesh::prepare::prepare;
 use shapeseek::mesh::{read_path, write_mesh, Format, ReadLimits};
@@ -31,6 +32,11 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     std::fs::create_dir_all(&out)?;
     let spec = shapeseek::presets::default_config().signature;
     let mut opts = spec.analysis_options(&AnalyzeOptions::default()).prepare;
+    // The server's vertex budget (`analysis_vertex_budget`); `BUDGET=0`: full resolution.
+    opts.max_vertices = match std::env::var("BUDGET") {
+        Ok(b) => Some(b.parse::<usize>()?).filter(|&b| b > 0),
+        Err(_) => Some(shapeseek::presets::ANALYSIS_VERTEX_BUDGET),
+    };
     if std::env::var_os("NOCAP").is_some() {
         opts.cap_boundaries = None;
         opts.cut_handles = None;
