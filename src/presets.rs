@@ -412,9 +412,10 @@ pub fn default_config() -> Config {
 pub const DEFAULT_HISTOGRAM_BINS: usize = 128;
 
 /// Vertices a shape is analysed at, at most ([`crate::mesh::prepare::PrepareOptions::max_vertices`],
-/// [`crate::mesh::decimate`]): a larger mesh is simplified to this many before its spectrum. The
-/// benchmarks' shapes have 1 000–7 000 vertices and are never simplified; a 180 000-vertex scan
-/// otherwise costs about a minute and 1 GiB of memory (`docs/reliability.md`, "Large meshes").
+/// [`crate::mesh::decimate`]): a larger mesh is simplified to this many before its spectrum
+/// (capping may add its caps' vertices after). The benchmarks' shapes have 1 000–6 669 vertices
+/// and are never simplified; a 180 000-vertex upload otherwise took 28 s and 1 GiB of memory
+/// (`docs/reliability.md`, "Large meshes").
 pub const ANALYSIS_VERTEX_BUDGET: usize = 20_000;
 
 /// Eigenvalues in the default's ShapeDNA channel (`docs/quality.md` §24): an index needs at

@@ -54,7 +54,8 @@ fn icosphere_spectrum_converges_to_l_l_plus_1_with_multiplicity() {
 /// 40 962 vertices simplified to 5 000 keeps the 100 eigenvalues a signature reads (l ≤ 9)
 /// closer to the analytic ones than a regular icosphere of 2 562 vertices (second-order
 /// convergence puts a regular mesh of 5 000 vertices at about half that one's error); a sheet of
-/// 20 301 vertices simplified to 3 000 keeps its Neumann spectrum (its border is kept).
+/// 20 301 vertices simplified to 3 000 keeps its Neumann spectrum (its border is kept) within a
+/// quarter of the error of a regular grid of as many vertices.
 #[test]
 fn a_fine_mesh_simplified_to_the_budget_keeps_its_low_spectrum() {
     let k = 100;
@@ -113,7 +114,11 @@ fn a_fine_mesh_simplified_to_the_budget_keeps_its_low_spectrum() {
         worst(&full.spectrum.eigenvalues),
         full.mesh.vertices.len()
     );
-    assert!(w < 0.8 * w_half, "{w} vs {w_half}");
+    let w_full = worst(&full.spectrum.eigenvalues);
+    assert!(
+        w < 0.8 * w_half && w < 1.25 * w_full,
+        "{w} vs {w_half}, {w_full}"
+    );
 }
 
 #[test]

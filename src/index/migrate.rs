@@ -97,6 +97,9 @@ fn add_payloads(db: &sled::Db) -> Result<()> {
     let meshes = db.open_tree("meshes").map_err(storage_err)?;
     let payloads = db.open_tree("payloads").map_err(storage_err)?;
     let mut options = crate::index::default_engine().analyze_options();
+    // Indexes of schema 1 predate the vertex budget: their signatures were computed at full
+    // resolution, and the payloads added here must describe the same meshes.
+    options.prepare.max_vertices = None;
     let meta = db.open_tree("meta").map_err(storage_err)?;
     if let Some(key) = meta.get("spec_key").map_err(storage_err)? {
         let key = String::from_utf8_lossy(&key).into_owned();
