@@ -77,14 +77,7 @@ pub fn decimate(
         return None;
     }
     let t0 = std::time::Instant::now();
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for v in &mesh.vertices {
-        for k in 0..3 {
-            lo[k] = lo[k].min(v[k]);
-            hi[k] = hi[k].max(v[k]);
-        }
-    }
+    let (lo, hi) = super::bounding_box(&mesh.vertices);
     let centre: [f64; 3] = std::array::from_fn(|k| 0.5 * (lo[k] + hi[k]));
     let positions: Vec<[f32; 3]> = mesh
         .vertices

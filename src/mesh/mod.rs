@@ -72,6 +72,22 @@ impl Mesh {
     }
 }
 
+/// The axis-aligned bounding box `(lo, hi)` of `points` (`lo` = +∞, `hi` = −∞ when there are
+/// none).
+pub(crate) fn bounding_box<'a>(
+    points: impl IntoIterator<Item = &'a [f64; 3]>,
+) -> ([f64; 3], [f64; 3]) {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in points {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    (lo, hi)
+}
+
 /// Area of one triangle of `mesh`.
 pub fn triangle_area(mesh: &Mesh, f: &[u32; 3]) -> f64 {
     face_area(&mesh.vertices, f)

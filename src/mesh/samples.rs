@@ -435,16 +435,7 @@ fn smin(a: f64, b: f64, k: f64) -> f64 {
 
 fn skeleton_mesh(bones: &[Bone], blend: f64, cells: f64, offset: f64) -> Mesh {
     let rmax = bones.iter().map(|b| b.ra.max(b.rb)).fold(0.0, f64::max);
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for b in bones {
-        for p in [b.a, b.b] {
-            for k in 0..3 {
-                lo[k] = lo[k].min(p[k]);
-                hi[k] = hi[k].max(p[k]);
-            }
-        }
-    }
+    let (mut lo, mut hi) = super::bounding_box(bones.iter().flat_map(|b| [&b.a, &b.b]));
     let longest = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max) + 2.0 * rmax;
     let h = longest / cells;
     for k in 0..3 {
@@ -652,14 +643,7 @@ impl Rng {
 }
 
 fn add_noise(mesh: &mut Mesh, fraction: f64, rng: &mut Rng) {
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for v in &mesh.vertices {
-        for k in 0..3 {
-            lo[k] = lo[k].min(v[k]);
-            hi[k] = hi[k].max(v[k]);
-        }
-    }
+    let (lo, hi) = super::bounding_box(&mesh.vertices);
     let diag = dot(sub(hi, lo), sub(hi, lo)).sqrt();
     for v in &mut mesh.vertices {
         for c in v.iter_mut() {

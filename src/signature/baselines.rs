@@ -131,14 +131,7 @@ pub(crate) fn d2_sketch(mesh: &Mesh, samples: usize, q: usize) -> QuantileSketch
     let area = mesh.area();
     let m = pts.len();
     let w = 2.0 * (area / m.max(1) as f64).powi(2);
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for p in &pts {
-        for k in 0..3 {
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
-        }
-    }
+    let (lo, hi) = crate::mesh::bounding_box(&pts);
     let bound = if m > 0 { norm(sub(hi, lo)) } else { 1.0 };
     let chunk = 64;
     let parts: Vec<FineHistogram> = (0..m.div_ceil(chunk))

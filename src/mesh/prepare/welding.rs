@@ -57,14 +57,7 @@ pub(super) fn weld_tolerance(vertices: &[[f64; 3]], eps: f64) -> (Vec<u32>, Vec<
     if n == 0 {
         return (Vec::new(), Vec::new());
     }
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for v in vertices {
-        for k in 0..3 {
-            lo[k] = lo[k].min(v[k]);
-            hi[k] = hi[k].max(v[k]);
-        }
-    }
+    let (lo, hi) = crate::mesh::bounding_box(vertices);
     let h = eps * norm(sub(hi, lo));
     if !(h > 0.0 && h.is_finite()) {
         return weld_exact(vertices);
