@@ -38,6 +38,8 @@ struct Loaded {
     sample: Sample,
     /// Signatures recomputed for the current spec.
     recomputed: usize,
+    /// Shapes whose signature had to be recomputed and could not be ([`App::recompute`]).
+    left_out: usize,
 }
 
 /// A stored original read as a mesh: its record's `format` is the hint, and no upload limit
@@ -154,6 +156,7 @@ impl App {
             encoded_under: seen.as_ref().map(|(_, _, epoch)| *epoch),
             sample: Sample::new(self.cfg.calibration_sample),
             recomputed: 0,
+            left_out: 0,
         };
         let mut after: Option<String> = None;
         let mut total = 0usize;
@@ -187,6 +190,7 @@ impl App {
                     Some(s) => s,
                     None => {
                         let Some(sig) = self.recompute(rec.clone())? else {
+                            l.left_out += 1;
                             continue;
                         };
                         l.recomputed += 1;
@@ -217,6 +221,13 @@ impl App {
             tracing::info!(
                 recomputed = l.recomputed,
                 "signatures recomputed for the current spec"
+            );
+        }
+        if l.left_out > 0 {
+            tracing::warn!(
+                left_out = l.left_out,
+                "stored shapes left out of the index: their signatures could not be recomputed \
+                 (each logged above); the next start tries again"
             );
         }
         if let Some(sh) = self.shard() {
@@ -260,18 +271,40 @@ impl App {
     }
 
     /// Recomputes the signature and payload of `rec` from its stored original (derivable data)
-    /// and stores them; `None` (logged) when the original is missing. Blocking (store calls
-    /// through [`App::block`]).
+    /// and stores them. `None` (logged as an error) when that shape cannot be recomputed: its
+    /// original is missing or damaged on disk, or it no longer passes the analysis under this
+    /// spec (a release whose preparation refuses what an earlier one accepted). The record and
+    /// its original stay stored, left out of the scan; the next start tries again. One such
+    /// shape never stops a node from serving the others. A store that fails otherwise is an
+    /// error. Blocking (store calls through [`App::block`]).
     pub(super) fn recompute(&self, mut rec: ShapeRecord) -> crate::Result<Option<Signature>> {
-        let Some(orig) = self.block(self.store.mesh(&rec.id))? else {
-            tracing::error!(id = %rec.id, "no original mesh to recompute from; skipped");
-            return Ok(None);
+        let skipped = |why: &str, e: &dyn std::fmt::Display| {
+            tracing::error!(
+                id = %rec.id,
+                error = %e,
+                "{why}; the shape stays stored but is left out of the index"
+            );
+            Ok(None)
         };
-        let mesh = read_original(&rec.format, &orig)?;
-        let (analysis, sig) = self.engine.sign(&mesh)?;
+        let orig = match self.block(self.store.mesh(&rec.id)) {
+            Ok(Some(o)) => o,
+            Ok(None) => return skipped("no original mesh to recompute from", &"missing"),
+            Err(e @ crate::Error::Corrupt { .. }) => {
+                return skipped("the original mesh is damaged on disk", &e)
+            }
+            Err(e) => return Err(e),
+        };
+        let analysed = read_original(&rec.format, &orig).and_then(|m| self.engine.sign(&m));
+        let (analysis, sig) = match analysed {
+            Ok(a) => a,
+            Err(e) => return skipped("the original mesh cannot be analysed under this spec", &e),
+        };
         rec.spec_key = self.engine.spec_key();
         // The payload depends on the same analysis (eigenpairs): refresh it too.
-        let payload = compute_payload(&analysis, &PayloadSpec::default())?.to_bytes();
+        let payload = match compute_payload(&analysis, &PayloadSpec::default()) {
+            Ok(p) => p.to_bytes(),
+            Err(e) => return skipped("the re-ranking payload cannot be computed", &e),
+        };
         self.block(self.store.replace_signature(
             &rec,
             &self.engine.encode_signature(&sig),
@@ -633,5 +666,68 @@ mod tests {
         app.engine
             .decode_signature(&bytes)
             .expect("the recomputed signature was stored");
+    }
+
+    /// A shape whose signature must be recomputed and cannot be — its original no longer
+    /// reads as a mesh, or is damaged on disk — is left out of the index (logged), and the node
+    /// serves every other shape. Before, `serve` exited on it: one shape could keep a whole
+    /// index offline after an upgrade.
+    #[test]
+    fn a_shape_that_cannot_be_recomputed_is_left_out_and_the_others_are_served() {
+        let dir = tempfile::tempdir().unwrap();
+        let meshes = &meshes()[..4];
+        let ids: Vec<String> = {
+            let rt = runtime();
+            let store = sled_store(dir.path(), &rt);
+            let first = Arc::new(node(dir.path(), &store, &rt));
+            for (i, m) in meshes.iter().enumerate() {
+                ingest(&first, &rt, m, &format!("s{i}"));
+            }
+            wait_idle(&first);
+            served(&first).1.into_iter().map(|(id, _)| id).collect()
+        };
+        assert_eq!(ids.len(), 4);
+        let (unreadable, damaged) = (ids[1].clone(), ids[2].clone());
+        {
+            let db = crate::index::store::open_db(&dir.path().join("db")).unwrap();
+            let signatures = db.open_tree(crate::index::store::SIGNATURE_CHUNKS).unwrap();
+            let originals = db.open_tree(crate::index::store::MESH_CHUNKS).unwrap();
+            let piece = |id: &str| {
+                let mut key = id.as_bytes().to_vec();
+                key.extend_from_slice(&0u32.to_be_bytes());
+                key
+            };
+            for id in [&unreadable, &damaged] {
+                // Both signatures unreadable, so both must be recomputed.
+                let key = piece(id);
+                let mut p = signatures.get(&key).unwrap().unwrap().to_vec();
+                p[0] ^= 0x5a;
+                signatures.insert(&key[..], p).unwrap();
+            }
+            // One original replaced whole (checksums intact) by bytes that are no mesh.
+            originals
+                .transaction(|t| {
+                    crate::index::store::put_chunked(t, unreadable.as_bytes(), b"not a mesh")
+                })
+                .unwrap();
+            // The other's first piece flipped: the store reports it damaged.
+            let key = piece(&damaged);
+            let mut p = originals.get(&key).unwrap().unwrap().to_vec();
+            p[0] ^= 0x5a;
+            originals.insert(&key[..], p).unwrap();
+            db.flush().unwrap();
+        }
+        let rt = runtime();
+        let store = sled_store(dir.path(), &rt);
+        let app = node(dir.path(), &store, &rt);
+        let mut rows: Vec<String> = served(&app).1.into_iter().map(|(id, _)| id).collect();
+        rows.sort();
+        let mut others = vec![ids[0].clone(), ids[3].clone()];
+        others.sort();
+        assert_eq!(rows, others, "the two others served");
+        // Still stored, so a later start (or a mended original) can bring them back.
+        for id in [&unreadable, &damaged] {
+            assert!(rt.block_on(store.get(id)).unwrap().is_some(), "{id} kept");
+        }
     }
 }
