@@ -473,11 +473,15 @@ impl Store {
 
     /// Id of the shape stored with this content hash, if any.
     pub fn id_for_hash(&self, sha256: &[u8; 32]) -> Result<Option<String>> {
-        Ok(self
-            .by_hash
-            .get(sha256)
-            .map_err(storage_err)?
-            .map(|v| String::from_utf8_lossy(&v).into_owned()))
+        let Some(id) = self.by_hash.get(sha256).map_err(storage_err)? else {
+            return Ok(None);
+        };
+        // Only while its shape is stored: a delete that could not decode the record left the
+        // entry behind ([`Store::delete`]).
+        if !self.shapes.contains_key(&id).map_err(storage_err)? {
+            return Ok(None);
+        }
+        Ok(Some(String::from_utf8_lossy(&id).into_owned()))
     }
 
     /// A fresh id (monotonic, 16 hex digits).
@@ -542,9 +546,13 @@ impl Store {
         )
             .transaction(|(shapes, sigs, meshes, by_hash, payloads)| {
                 if let Some(existing) = by_hash.get(sha256)? {
-                    return Ok(Inserted::Existing(
-                        String::from_utf8_lossy(&existing).into_owned(),
-                    ));
+                    // An entry whose shape is gone (a delete could not read its record to
+                    // find the hash) is stale: the upload is stored anew over it.
+                    if shapes.get(&existing)?.is_some() {
+                        return Ok(Inserted::Existing(
+                            String::from_utf8_lossy(&existing).into_owned(),
+                        ));
+                    }
                 }
                 shapes.insert(id, rec.as_slice())?;
                 put_chunked(sigs, id, signature)?;
@@ -575,6 +583,8 @@ impl Store {
                 remove_chunked(sigs, key)?;
                 remove_chunked(meshes, key)?;
                 remove_chunked(payloads, key)?;
+                // A record that no longer decodes does not give its hash: that entry stays,
+                // and lookups and inserts treat an entry without its shape as absent.
                 if let Ok(r) = serde_json::from_slice::<ShapeRecord>(&rec) {
                     if let Ok(h) = hex::decode(&r.sha256) {
                         by_hash.remove(h)?;
@@ -771,6 +781,60 @@ pub fn now_unix_ms() -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A shape whose record no longer decodes can still be deleted, and the same upload is
+    /// then stored anew. Before, the delete left the upload's hash entry pointing at the
+    /// deleted id: the lookup named a shape that answers 404, and the insert answered
+    /// "existing" with it, so that upload could never be stored again.
+    #[test]
+    fn a_shape_deleted_with_an_undecodable_record_can_be_uploaded_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let mesh = crate::mesh::generate::icosphere(1);
+        let (_, prepare) = crate::mesh::prepare::prepare(
+            &mesh,
+            &crate::mesh::prepare::PrepareOptions::default(),
+        )
+        .unwrap();
+        let original = b"an original".to_vec();
+        let sha256 = [7u8; 32];
+        let record = |id: String| ShapeRecord {
+            id,
+            name: "s".into(),
+            tags: vec![],
+            format: "obj".into(),
+            content_type: "model/obj".into(),
+            bytes: original.len() as u64,
+            vertices: mesh.vertices.len(),
+            faces: mesh.faces.len(),
+            area: 1.0,
+            sha256: hex::encode(sha256),
+            created_unix_ms: now_unix_ms(),
+            prepare: prepare.clone(),
+            spec_key: "k".into(),
+        };
+        let first = store.new_id().unwrap();
+        let put = |id: &str| {
+            store
+                .insert(&record(id.to_string()), &sha256, b"sig", &original, None)
+                .unwrap()
+        };
+        assert!(matches!(put(&first), Inserted::New(ref id) if *id == first));
+        store
+            .shapes
+            .insert(first.as_bytes(), &b"{not a record"[..])
+            .unwrap();
+        assert!(store.get(&first).is_err(), "the record no longer decodes");
+        assert!(store.delete(&first).unwrap());
+        assert_eq!(store.id_for_hash(&sha256).unwrap(), None);
+        let second = store.new_id().unwrap();
+        assert!(matches!(put(&second), Inserted::New(ref id) if *id == second));
+        assert_eq!(store.id_for_hash(&sha256).unwrap(), Some(second.clone()));
+        assert_eq!(store.get(&second).unwrap().unwrap().id, second);
+        // And a stored shape is still found as before.
+        let third = store.new_id().unwrap();
+        assert!(matches!(put(&third), Inserted::Existing(ref id) if *id == second));
+    }
 
     /// Chunked values of every length around a piece boundary read back byte for byte; a
     /// shorter replacement and a removal leave no piece behind; a missing piece is corruption.
