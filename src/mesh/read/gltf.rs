@@ -18,8 +18,10 @@
 //! Required extensions: those that change only how a surface looks (materials, textures,
 //! lights), animation (`KHR_animation_pointer`), XMP metadata and `KHR_mesh_quantization` are
 //! read past (the `gltf` crate's `allow_empty_texture` lets a texture whose image is only in an
-//! extension pass its validator); any other (Draco or meshopt compression, GPU instancing) is
-//! refused with its name, since the bytes of the geometry may then mean something else.
+//! extension pass its validator); meshopt-compressed buffer views (`EXT_meshopt_compression`,
+//! `KHR_meshopt_compression`: `gltfpack -cc`, `gltf-transform meshopt`) are decoded
+//! ([`super::gltf_meshopt`]); any other (Draco compression, GPU instancing) is refused with its
+//! name, since the bytes of the geometry may then mean something else.
 //!
 //! Declared lengths must agree with the data (else `mesh.inconsistent`, unless the read is
 //! lenient, which keeps the old behaviour and notes the repair): `asset.version` must be 2.x; a
@@ -28,12 +30,14 @@
 //! position) count must be a multiple of 3 (lenient: the trailing indices are ignored).
 //! Positions are f32 (or dequantized to f32) in glTF: they are widened exactly to f64.
 
+use super::gltf_meshopt::Meshopt;
 use super::ReadLimits;
 use crate::error::{Error, Location, Result};
 use crate::mesh::Mesh;
 use base64::Engine;
 use gltf::accessor::{DataType, Dimensions};
 use gltf::mesh::Mode;
+use std::collections::HashMap;
 
 const F: &str = "glTF";
 const CHUNK_JSON: u32 = 0x4E4F_534A;
@@ -157,13 +161,76 @@ const IDENTITY: Mat = [
     [0.0, 0.0, 0.0, 1.0],
 ];
 
-/// The bytes of an accessor's elements: `(data, first element offset, stride)`, all checked.
-fn accessor_bytes<'b>(
-    acc: &gltf::Accessor,
-    buffers: &'b [Vec<u8>],
+/// Where the reader takes the bytes of a buffer view from.
+struct Sources<'b> {
+    /// Each buffer's data URI decoded (empty for the BIN chunk and for fallback buffers).
+    buffers: Vec<Vec<u8>>,
+    /// The GLB `BIN` chunk.
     bin: Option<&'b [u8]>,
+    /// The meshopt-compressed views and fallback buffers.
+    meshopt: Meshopt,
+    /// Compressed views decoded, by view index.
+    decoded: HashMap<usize, Vec<u8>>,
+}
+
+impl<'b> Sources<'b> {
+    /// The bytes of buffer `i`: its decoded data URI, or the BIN chunk.
+    fn buffer(&self, i: usize, source: gltf::buffer::Source) -> Result<&[u8]> {
+        match source {
+            gltf::buffer::Source::Bin => self
+                .bin
+                .ok_or_else(|| perr(format!("buffer {i}: no GLB BIN chunk"))),
+            gltf::buffer::Source::Uri(_) => self
+                .buffers
+                .get(i)
+                .map(Vec::as_slice)
+                .ok_or_else(|| perr(format!("buffer {i} missing"))),
+        }
+    }
+
+    /// Decodes every compressed view that a position or index accessor of a triangle
+    /// primitive reads, once.
+    fn decode_views(&mut self, doc: &gltf::Document, limits: &ReadLimits) -> Result<()> {
+        let mut wanted: Vec<usize> = Vec::new();
+        for mesh in doc.meshes() {
+            for prim in mesh.primitives() {
+                if !matches!(
+                    prim.mode(),
+                    Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+                ) {
+                    continue;
+                }
+                let accessors = prim.get(&gltf::Semantic::Positions).into_iter();
+                for acc in accessors.chain(prim.indices()) {
+                    if let Some(v) = acc.view() {
+                        if self.meshopt.is_compressed(v.index()) {
+                            wanted.push(v.index());
+                        }
+                    }
+                }
+            }
+        }
+        wanted.sort_unstable();
+        wanted.dedup();
+        let kinds: Vec<gltf::buffer::Source> = doc.buffers().map(|b| b.source()).collect();
+        for i in wanted {
+            let data = self.meshopt.decode(
+                i,
+                |b| kinds.get(b).and_then(|k| self.buffer(b, k.clone()).ok()),
+                limits,
+            )?;
+            self.decoded.insert(i, data);
+        }
+        Ok(())
+    }
+}
+
+/// The bytes of an accessor's elements: `(data, first element offset, stride)`, all checked.
+fn accessor_bytes<'s>(
+    acc: &gltf::Accessor,
+    src: &'s Sources,
     what: &str,
-) -> Result<(&'b [u8], usize, usize)> {
+) -> Result<(&'s [u8], usize, usize)> {
     let name = format!("{what} accessor {}", acc.index());
     if acc.sparse().is_some() {
         return Err(perr(format!("{name}: sparse accessors are not supported")));
@@ -174,14 +241,17 @@ fn accessor_bytes<'b>(
         ))
     })?;
     let buffer = view.buffer();
-    let data: &[u8] = match buffer.source() {
-        gltf::buffer::Source::Bin => {
-            bin.ok_or_else(|| perr(format!("buffer {}: no GLB BIN chunk", buffer.index())))?
+    // A compressed view's bytes are its decoded data, from their start.
+    let (data, view_offset): (&[u8], usize) = match src.decoded.get(&view.index()) {
+        Some(d) => (d, 0),
+        None if src.meshopt.is_fallback(buffer.index()) => {
+            return Err(perr(format!(
+                "{name}: bufferView {} reads buffer {}, a meshopt fallback buffer without data",
+                view.index(),
+                buffer.index()
+            )))
         }
-        gltf::buffer::Source::Uri(_) => buffers
-            .get(buffer.index())
-            .map(Vec::as_slice)
-            .ok_or_else(|| perr(format!("buffer {} missing", buffer.index())))?,
+        None => (src.buffer(buffer.index(), buffer.source())?, view.offset()),
     };
     let elem = acc.size();
     let stride = view.stride().unwrap_or(elem);
@@ -190,8 +260,7 @@ fn accessor_bytes<'b>(
             "{name}: byteStride {stride} smaller than the element size {elem}"
         )));
     }
-    let view_end = view
-        .offset()
+    let view_end = view_offset
         .checked_add(view.length())
         .filter(|&e| e <= data.len())
         .ok_or_else(|| {
@@ -200,7 +269,7 @@ fn accessor_bytes<'b>(
                 view.index()
             ))
         })?;
-    let start = view.offset().saturating_add(acc.offset());
+    let start = view_offset.saturating_add(acc.offset());
     let count = acc.count();
     if count > 0 {
         let need = (count - 1)
@@ -217,11 +286,7 @@ fn accessor_bytes<'b>(
     Ok((data, start, stride))
 }
 
-fn read_positions(
-    acc: &gltf::Accessor,
-    buffers: &[Vec<u8>],
-    bin: Option<&[u8]>,
-) -> Result<Vec<[f32; 3]>> {
+fn read_positions(acc: &gltf::Accessor, src: &Sources) -> Result<Vec<[f32; 3]>> {
     let dt = acc.data_type();
     if acc.dimensions() != Dimensions::Vec3 || dt == DataType::U32 {
         return Err(perr(format!(
@@ -230,7 +295,7 @@ fn read_positions(
             acc.index()
         )));
     }
-    let (data, start, stride) = accessor_bytes(acc, buffers, bin, "POSITION")?;
+    let (data, start, stride) = accessor_bytes(acc, src, "POSITION")?;
     // KHR_mesh_quantization: integer components, as integers or normalized (signed ones
     // clamped at -1); the node transforms that exporters add to dequantize are applied later.
     let normalized = acc.normalized();
@@ -264,8 +329,9 @@ fn read_positions(
 /// prefix its name says it changes only how the surface looks (`materials_`, `texture_`,
 /// `lights_`), or it is `KHR_animation_pointer` or `KHR_xmp_json_ld` (animation, XMP
 /// metadata), none of which is read; or it is `KHR_mesh_quantization`, whose integer positions
-/// [`read_positions`] reads. Anything else (compressed buffers, GPU instancing, levels of
-/// detail, structural metadata) may change what the bytes of the geometry mean.
+/// [`read_positions`] reads, or meshopt compression, whose views [`Sources::decode_views`]
+/// decodes. Anything else (Draco compression, GPU instancing, levels of detail, structural
+/// metadata) may change what the bytes of the geometry mean.
 fn leaves_geometry_readable(ext: &str) -> bool {
     let looks = ext.split_once('_').is_some_and(|(_, name)| {
         ["materials_", "texture_", "lights_"]
@@ -275,11 +341,15 @@ fn leaves_geometry_readable(ext: &str) -> bool {
     looks
         || matches!(
             ext,
-            "KHR_mesh_quantization" | "KHR_animation_pointer" | "KHR_xmp_json_ld"
+            "KHR_mesh_quantization"
+                | "KHR_animation_pointer"
+                | "KHR_xmp_json_ld"
+                | "EXT_meshopt_compression"
+                | "KHR_meshopt_compression"
         )
 }
 
-fn read_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>], bin: Option<&[u8]>) -> Result<Vec<u32>> {
+fn read_indices(acc: &gltf::Accessor, src: &Sources) -> Result<Vec<u32>> {
     if acc.dimensions() != Dimensions::Scalar {
         return Err(perr(format!(
             "index accessor {} must be SCALAR",
@@ -293,7 +363,7 @@ fn read_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>], bin: Option<&[u8]>) -
             acc.index()
         )));
     }
-    let (data, start, stride) = accessor_bytes(acc, buffers, bin, "index")?;
+    let (data, start, stride) = accessor_bytes(acc, src, "index")?;
     Ok((0..acc.count())
         .map(|i| {
             let o = start + i * stride;
@@ -331,13 +401,10 @@ fn parse_document(json: &[u8]) -> Result<gltf::Document> {
     {
         let what = match ext.as_str() {
             "KHR_draco_mesh_compression" => " (Draco-compressed geometry)",
-            "EXT_meshopt_compression" | "KHR_meshopt_compression" => {
-                " (meshopt-compressed buffers)"
-            }
             _ => "",
         };
-        // `gltf-transform copy` writes Draco- and meshopt-compressed files uncompressed (both
-        // checked with @gltf-transform/cli 4.5.1).
+        // `gltf-transform copy` writes Draco-compressed files uncompressed (checked with
+        // @gltf-transform/cli 4.5.1).
         let how = if what.is_empty() {
             "export the mesh without it"
         } else {
@@ -405,6 +472,7 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
         (bytes, None)
     };
     let doc = parse_document(json)?;
+    let meshopt = Meshopt::from_json(json)?;
     let mut repairs = Vec::new();
     let version = doc.as_json().asset.version.clone();
     if version.split('.').next() != Some("2") {
@@ -419,6 +487,11 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
     // Resolve the buffers (BIN chunk or embedded data URI; anything else is refused).
     let mut buffers: Vec<Vec<u8>> = Vec::new();
     for b in doc.buffers() {
+        if meshopt.is_fallback(b.index()) {
+            // No data of its own: only compressed views refer to it (their bytes are elsewhere).
+            buffers.push(Vec::new());
+            continue;
+        }
         let data = match b.source() {
             gltf::buffer::Source::Bin => {
                 let bin = bin.ok_or_else(|| {
@@ -487,6 +560,13 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
         };
         buffers.push(data);
     }
+    let mut src = Sources {
+        buffers,
+        bin,
+        meshopt,
+        decoded: HashMap::new(),
+    };
+    src.decode_views(&doc, limits)?;
 
     let roots: Vec<gltf::Node> = match doc.default_scene().or_else(|| doc.scenes().next()) {
         Some(scene) => scene.nodes().collect(),
@@ -574,10 +654,10 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                 _ => n_idx.saturating_sub(2),
             };
             limits.check_faces(faces.len().saturating_add(n_tri))?;
-            let positions = read_positions(&pos_acc, &buffers, bin)?;
+            let positions = read_positions(&pos_acc, &src)?;
             let indices: Vec<u32> = match prim.indices() {
                 Some(acc) => {
-                    let idx = read_indices(&acc, &buffers, bin)?;
+                    let idx = read_indices(&acc, &src)?;
                     if let Some(&bad) = idx.iter().find(|&&i| i as usize >= np) {
                         return Err(perr(format!(
                             "mesh {} primitive {}: index {bad} out of range ({np} positions)",
@@ -712,8 +792,6 @@ mod tests {
         );
         assert!(!e.contains("Missing data"), "{e}");
         assert!(e.contains("decompress it first"), "{e}");
-        let e = err("EXT_meshopt_compression");
-        assert!(e.contains("(meshopt-compressed buffers)"), "{e}");
         let e = err("EXT_mesh_gpu_instancing");
         assert!(
             e.contains("extension EXT_mesh_gpu_instancing, which shapeseek"),
@@ -860,5 +938,228 @@ mod tests {
         assert_eq!(apply(&mul(&t, &s), [1.0, 1.0, 1.0]), [3.0, 4.0, 5.0]);
         assert_eq!(apply(&mul(&s, &t), [1.0, 1.0, 1.0]), [4.0, 6.0, 8.0]);
         assert!(det3(&s) > 0.0);
+    }
+
+    /// `b` padded with `byte` to a multiple of 4 bytes (GLB chunks: spaces after JSON, zeros
+    /// after binary data).
+    fn pad4(mut b: Vec<u8>, byte: u8) -> Vec<u8> {
+        while b.len() % 4 != 0 {
+            b.push(byte);
+        }
+        b
+    }
+
+    /// A GLB of one primitive whose positions (`stride` bytes each, `vertices` encoded, `filter`
+    /// named) and indices (`index_size` bytes each, `indices` encoded, `mode` named) are
+    /// meshopt-compressed in the BIN chunk, under extension `ext`, their views in a fallback
+    /// buffer; `component` is the positions' component type.
+    #[allow(clippy::too_many_arguments)]
+    fn meshopt_glb(
+        ext: &str,
+        (vertices, count, stride, component, filter): (&[u8], usize, usize, u32, &str),
+        (indices, n_idx, index_size, mode): (&[u8], usize, usize, &str),
+    ) -> Vec<u8> {
+        let vbytes = pad4(vertices.to_vec(), 0);
+        let ibytes = pad4(indices.to_vec(), 0);
+        let (voff, ioff) = (0, vbytes.len());
+        let bin = [vbytes, ibytes].concat();
+        let decoded_v = count * stride;
+        let decoded_i = n_idx * index_size;
+        let json = format!(
+            r#"{{"asset":{{"version":"2.0"}},
+            "extensionsUsed":["{ext}"],"extensionsRequired":["{ext}"],
+            "buffers":[{{"byteLength":{bl}}},
+                       {{"byteLength":{fl},"extensions":{{"{ext}":{{"fallback":true}}}}}}],
+            "bufferViews":[
+              {{"buffer":1,"byteOffset":0,"byteLength":{decoded_v},"byteStride":{stride},
+                "extensions":{{"{ext}":{{"buffer":0,"byteOffset":{voff},"byteLength":{vl},
+                  "byteStride":{stride},"count":{count},"mode":"ATTRIBUTES","filter":"{filter}"}}}}}},
+              {{"buffer":1,"byteOffset":{decoded_v},"byteLength":{decoded_i},
+                "extensions":{{"{ext}":{{"buffer":0,"byteOffset":{ioff},"byteLength":{il},
+                  "byteStride":{index_size},"count":{n_idx},"mode":"{mode}"}}}}}}],
+            "accessors":[
+              {{"bufferView":0,"componentType":{component},"count":{count},"type":"VEC3",
+                "min":[-1,-1,-1],"max":[1,1,1]}},
+              {{"bufferView":1,"componentType":{ict},"count":{n_idx},"type":"SCALAR"}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+            "nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}],"scene":0}}"#,
+            bl = bin.len(),
+            fl = decoded_v + decoded_i,
+            vl = vertices.len(),
+            il = indices.len(),
+            ict = if index_size == 2 { 5123 } else { 5125 },
+        );
+        glb(&[
+            chunk(b"JSON", &pad4(json.into_bytes(), b' ')),
+            chunk(b"BIN\0", &bin),
+        ])
+    }
+
+    /// A meshopt-compressed file (gltfpack's `-cc`, `gltf-transform meshopt`) reads as the same
+    /// mesh uncompressed: float positions with u32 indices in `TRIANGLES` mode, and positions
+    /// through the `EXPONENTIAL` filter with u16 indices in `INDICES` mode under the extension's
+    /// ratified name. Before, both were refused ("requires the glTF extension …").
+    #[test]
+    fn a_meshopt_compressed_file_reads_as_the_uncompressed_mesh() {
+        let sphere = crate::mesh::generate::icosphere(2);
+        let positions: Vec<[f32; 3]> = sphere
+            .vertices
+            .iter()
+            .map(|p| p.map(|x| x as f32))
+            .collect();
+        let n = positions.len();
+        let flat: Vec<u32> = sphere.faces.iter().flatten().copied().collect();
+        // The index codec may rotate a triangle's corners (never its winding).
+        let rotated = |t: &[u32; 3]| {
+            let k = (0..3).min_by_key(|&k| t[k]).unwrap();
+            [t[k], t[(k + 1) % 3], t[(k + 2) % 3]]
+        };
+        let expect = |m: &Mesh, tol: f64| {
+            let got: Vec<[u32; 3]> = m.faces.iter().map(rotated).collect();
+            let want: Vec<[u32; 3]> = sphere.faces.iter().map(rotated).collect();
+            assert_eq!(got, want);
+            assert_eq!(m.vertices.len(), n);
+            for (a, b) in m.vertices.iter().zip(&positions) {
+                for k in 0..3 {
+                    assert!((a[k] - b[k] as f64).abs() <= tol, "{a:?} vs {b:?}");
+                }
+            }
+        };
+
+        let v = meshopt::encode_vertex_buffer(&positions).unwrap();
+        let i = meshopt::encode_index_buffer(&flat, n).unwrap();
+        let g = meshopt_glb(
+            "EXT_meshopt_compression",
+            (&v, n, 12, 5126, "NONE"),
+            (&i, flat.len(), 4, "TRIANGLES"),
+        );
+        expect(&read(&g, &ReadLimits::default()).unwrap(), 0.0);
+
+        // 24-bit mantissas: within 2^-23 of the largest coordinate (1).
+        let mut exp = vec![0u32; n * 3];
+        let flat16: Vec<u16> = flat.iter().map(|&x| x as u16).collect();
+        let mut seq = vec![0u8; flat16.len() * 4 + 64];
+        // SAFETY: `exp` holds `n` elements of 12 bytes and `positions` `n × 3` floats, as the
+        // filter reads and writes; `seq` is as large as meshoptimizer's bound for 2-byte
+        // indices (the bound is below 4 bytes per index plus its header).
+        let written = unsafe {
+            use meshopt::ffi;
+            ffi::meshopt_encodeFilterExp(
+                exp.as_mut_ptr().cast(),
+                n,
+                12,
+                24,
+                positions.as_ptr().cast(),
+                ffi::meshopt_EncodeExpMode_meshopt_EncodeExpSeparate,
+            );
+            assert!(ffi::meshopt_encodeIndexSequenceBound(flat16.len(), n) <= seq.len());
+            ffi::meshopt_encodeIndexSequence(seq.as_mut_ptr(), seq.len(), flat.as_ptr(), flat.len())
+        };
+        seq.truncate(written);
+        assert!(written > 0);
+        let raw: Vec<[u32; 3]> = exp.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let v = meshopt::encode_vertex_buffer(&raw).unwrap();
+        let g = meshopt_glb(
+            "KHR_meshopt_compression",
+            (&v, n, 12, 5126, "EXPONENTIAL"),
+            (&seq, flat.len(), 2, "INDICES"),
+        );
+        expect(
+            &read(&g, &ReadLimits::default()).unwrap(),
+            1.0 / (1u64 << 22) as f64,
+        );
+    }
+
+    /// What is wrong with a compressed view is said plainly, and never reaches a decoder's
+    /// assertion (which would abort the process): a damaged stream, a stride the codec cannot
+    /// have, a view over more vertices than the limit, a view of the fallback buffer read as
+    /// data.
+    #[test]
+    fn a_bad_meshopt_view_is_refused_plainly() {
+        let sphere = crate::mesh::generate::icosphere(1);
+        let positions: Vec<[f32; 3]> = sphere
+            .vertices
+            .iter()
+            .map(|p| p.map(|x| x as f32))
+            .collect();
+        let n = positions.len();
+        let flat: Vec<u32> = sphere.faces.iter().flatten().copied().collect();
+        let v = meshopt::encode_vertex_buffer(&positions).unwrap();
+        let i = meshopt::encode_index_buffer(&flat, n).unwrap();
+        let ext = "EXT_meshopt_compression";
+        let err = |g: Vec<u8>, limits: &ReadLimits| match read(&g, limits) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("read"),
+        };
+        let ok = ReadLimits::default();
+
+        let mut damaged = v.clone();
+        damaged[0] = 0x7f; // the header byte: an unknown codec version
+        let e = err(
+            meshopt_glb(
+                ext,
+                (&damaged, n, 12, 5126, "NONE"),
+                (&i, flat.len(), 4, "TRIANGLES"),
+            ),
+            &ok,
+        );
+        assert!(
+            e.contains("bufferView 0 (meshopt-compressed): the compressed data does not decode"),
+            "{e}"
+        );
+
+        let e = err(
+            meshopt_glb(
+                ext,
+                (&v, n * 2, 6, 5126, "NONE"),
+                (&i, flat.len(), 4, "TRIANGLES"),
+            ),
+            &ok,
+        );
+        assert!(e.contains("byteStride 6 for mode Attributes"), "{e}");
+
+        let e = err(
+            meshopt_glb(
+                ext,
+                (&v, n, 12, 5126, "QUATERNION"),
+                (&i, flat.len(), 4, "TRIANGLES"),
+            ),
+            &ok,
+        );
+        assert!(e.contains("filter Quaternion does not apply"), "{e}");
+
+        let small = ReadLimits {
+            max_vertices: n - 1,
+            ..ReadLimits::default()
+        };
+        let e = err(
+            meshopt_glb(
+                ext,
+                (&v, n, 12, 5126, "NONE"),
+                (&i, flat.len(), 4, "TRIANGLES"),
+            ),
+            &small,
+        );
+        assert!(e.contains(&format!("{n}")), "{e}");
+
+        // The index view without its extension: it reads the fallback buffer itself.
+        let g = meshopt_glb(
+            ext,
+            (&v, n, 12, 5126, "NONE"),
+            (&i, flat.len(), 4, "TRIANGLES"),
+        );
+        let (json, bin) = split_glb(&g).unwrap();
+        let mut doc: serde_json::Value = serde_json::from_slice(json).unwrap();
+        doc["bufferViews"][1]
+            .as_object_mut()
+            .unwrap()
+            .remove("extensions")
+            .unwrap();
+        let g = glb(&[
+            chunk(b"JSON", &pad4(doc.to_string().into_bytes(), b' ')),
+            chunk(b"BIN\0", bin.unwrap()),
+        ]);
+        let e = err(g, &ok);
+        assert!(e.contains("a meshopt fallback buffer without data"), "{e}");
     }
 }

@@ -18,6 +18,7 @@
 //! * Units are whatever the file uses; no scaling is applied (glTF node scales excepted).
 
 mod gltf;
+mod gltf_meshopt;
 mod obj;
 #[cfg(test)]
 mod obj_legacy;
