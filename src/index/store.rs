@@ -791,11 +791,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let store = Store::open(dir.path()).unwrap();
         let mesh = crate::mesh::generate::icosphere(1);
-        let (_, prepare) = crate::mesh::prepare::prepare(
-            &mesh,
-            &crate::mesh::prepare::PrepareOptions::default(),
-        )
-        .unwrap();
+        let (_, prepare) =
+            crate::mesh::prepare::prepare(&mesh, &crate::mesh::prepare::PrepareOptions::default())
+                .unwrap();
         let original = b"an original".to_vec();
         let sha256 = [7u8; 32];
         let record = |id: String| ShapeRecord {

@@ -80,9 +80,12 @@ const CSP: &str = "default-src 'self'; script-src 'self'; style-src 'self'; \
 
 /// Content-Security-Policy of the mesh-reading worker: a worker takes its policy from its own
 /// response, not from the page, so without one a glTF naming an image elsewhere made the
-/// worker fetch it. It may import scripts from this origin (`shared.js`) and read `data:`/`blob:`
+/// worker fetch it. It may import scripts from this origin (`shared.js`), compile WebAssembly
+/// (`'wasm-unsafe-eval'`: meshoptimizer's decoder of meshopt-compressed glTF is a WebAssembly
+/// module embedded in the bundle; this allows no JavaScript `eval`) and read `data:`/`blob:`
 /// URLs and this origin, nothing else.
-const WORKER_CSP: &str = "default-src 'none'; script-src 'self'; connect-src 'self' data: blob:";
+const WORKER_CSP: &str =
+    "default-src 'none'; script-src 'self' 'wasm-unsafe-eval'; connect-src 'self' data: blob:";
 
 fn etags() -> &'static [String; ASSETS.len()] {
     static TAGS: OnceLock<[String; ASSETS.len()]> = OnceLock::new();

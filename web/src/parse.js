@@ -8,6 +8,7 @@ import { OBJLoader } from 'three/addons/loaders/OBJLoader.js';
 import { PLYLoader } from 'three/addons/loaders/PLYLoader.js';
 import { STLLoader } from 'three/addons/loaders/STLLoader.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { mergeVertices } from 'three/addons/utils/BufferGeometryUtils.js';
 import { parseOff } from './off.js';
 
@@ -103,7 +104,10 @@ async function parseMesh(bytes, format) {
       break;
     case 'gltf':
     case 'glb': {
-      const gltf = await new GLTFLoader().parseAsync(geometryOnly(bytes, format), '');
+      // meshopt-compressed buffers (gltfpack -c/-cc), which the server reads too: meshoptimizer's
+      // decoder is WebAssembly, which the worker's Content-Security-Policy allows for this.
+      const loader = new GLTFLoader().setMeshoptDecoder(MeshoptDecoder);
+      const gltf = await loader.parseAsync(geometryOnly(bytes, format), '');
       let scene = gltf.scene;
       if (!scene) {
         // A file without `scenes` is valid glTF: like the server, draw every root node (a node
