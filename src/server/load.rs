@@ -624,35 +624,45 @@ mod tests {
         assert_eq!(rows.len(), 6);
     }
 
+    /// `n` of the test meshes ingested into a sled node in a new directory: the directory and
+    /// the ids in scan order (the node is closed again).
+    fn stored(n: usize) -> (tempfile::TempDir, Vec<String>) {
+        let dir = tempfile::tempdir().unwrap();
+        let ids = {
+            let rt = runtime();
+            let store = sled_store(dir.path(), &rt);
+            let first = Arc::new(node(dir.path(), &store, &rt));
+            for (i, m) in meshes()[..n].iter().enumerate() {
+                ingest(&first, &rt, m, &format!("s{i}"));
+            }
+            wait_idle(&first);
+            served(&first).1.into_iter().map(|(id, _)| id).collect()
+        };
+        (dir, ids)
+    }
+
+    /// Flips one byte (at `at` of its length) of the first piece of the chunked value of `id`
+    /// in `tree` (its key: the id, then the piece's index as 4 bytes).
+    fn flip_first_piece(tree: &sled::Tree, id: &str, at: impl Fn(usize) -> usize) {
+        let mut key = id.as_bytes().to_vec();
+        key.extend_from_slice(&0u32.to_be_bytes());
+        let mut piece = tree.get(&key).unwrap().expect("a first piece").to_vec();
+        let i = at(piece.len());
+        piece[i] ^= 0x5a;
+        tree.insert(&key[..], piece).unwrap();
+    }
+
     /// A signature damaged on disk (sled's checksum of the value fails) is recomputed from its
     /// original at the next start and stored again: the node serves every shape. Before, the
     /// load failed on that one shape and `serve` exited.
     #[test]
     fn a_signature_damaged_on_disk_is_recomputed_at_load() {
-        let dir = tempfile::tempdir().unwrap();
-        let meshes = &meshes()[..3];
-        let (whole, damaged) = {
-            let rt = runtime();
-            let store = sled_store(dir.path(), &rt);
-            let first = Arc::new(node(dir.path(), &store, &rt));
-            for (i, m) in meshes.iter().enumerate() {
-                ingest(&first, &rt, m, &format!("s{i}"));
-            }
-            wait_idle(&first);
-            let whole = served(&first);
-            (whole.1.len(), whole.1[1].0.clone())
-        };
+        let (dir, ids) = stored(3);
+        let (whole, damaged) = (ids.len(), ids[1].clone());
         {
-            // One byte of the signature's first piece flipped (the key: id, then the piece's
-            // index as 4 bytes).
             let db = crate::index::store::open_db(&dir.path().join("db")).unwrap();
             let tree = db.open_tree(crate::index::store::SIGNATURE_CHUNKS).unwrap();
-            let mut key = damaged.as_bytes().to_vec();
-            key.extend_from_slice(&0u32.to_be_bytes());
-            let mut piece = tree.get(&key).unwrap().expect("a first piece").to_vec();
-            let mid = piece.len() / 2;
-            piece[mid] ^= 0x5a;
-            tree.insert(&key[..], piece).unwrap();
+            flip_first_piece(&tree, &damaged, |n| n / 2);
             db.flush().unwrap();
         }
         let rt = runtime();
@@ -674,35 +684,16 @@ mod tests {
     /// index offline after an upgrade.
     #[test]
     fn a_shape_that_cannot_be_recomputed_is_left_out_and_the_others_are_served() {
-        let dir = tempfile::tempdir().unwrap();
-        let meshes = &meshes()[..4];
-        let ids: Vec<String> = {
-            let rt = runtime();
-            let store = sled_store(dir.path(), &rt);
-            let first = Arc::new(node(dir.path(), &store, &rt));
-            for (i, m) in meshes.iter().enumerate() {
-                ingest(&first, &rt, m, &format!("s{i}"));
-            }
-            wait_idle(&first);
-            served(&first).1.into_iter().map(|(id, _)| id).collect()
-        };
+        let (dir, ids) = stored(4);
         assert_eq!(ids.len(), 4);
         let (unreadable, damaged) = (ids[1].clone(), ids[2].clone());
         {
             let db = crate::index::store::open_db(&dir.path().join("db")).unwrap();
             let signatures = db.open_tree(crate::index::store::SIGNATURE_CHUNKS).unwrap();
             let originals = db.open_tree(crate::index::store::MESH_CHUNKS).unwrap();
-            let piece = |id: &str| {
-                let mut key = id.as_bytes().to_vec();
-                key.extend_from_slice(&0u32.to_be_bytes());
-                key
-            };
             for id in [&unreadable, &damaged] {
                 // Both signatures unreadable, so both must be recomputed.
-                let key = piece(id);
-                let mut p = signatures.get(&key).unwrap().unwrap().to_vec();
-                p[0] ^= 0x5a;
-                signatures.insert(&key[..], p).unwrap();
+                flip_first_piece(&signatures, id, |_| 0);
             }
             // One original replaced whole (checksums intact) by bytes that are no mesh.
             originals
@@ -711,10 +702,7 @@ mod tests {
                 })
                 .unwrap();
             // The other's first piece flipped: the store reports it damaged.
-            let key = piece(&damaged);
-            let mut p = originals.get(&key).unwrap().unwrap().to_vec();
-            p[0] ^= 0x5a;
-            originals.insert(&key[..], p).unwrap();
+            flip_first_piece(&originals, &damaged, |_| 0);
             db.flush().unwrap();
         }
         let rt = runtime();

@@ -533,10 +533,25 @@ test('a large upload is read off the main thread: the page keeps answering while
   await page.unroute('**/v1/search', noHits);
 });
 
-/** A float-position GLB (one mesh, one primitive, as `shapeseek samples` writes it) rewritten as
- * gltfpack writes it by default: positions as normalized u16 in an 8-byte stride, the node's
- * scale and translation undoing the quantization, `KHR_mesh_quantization` required. */
-function quantizeGlb(glb) {
+/** A GLB of a JSON chunk `text` and a BIN chunk `body` (both already padded to 4 bytes). */
+function glbOf(text, body) {
+  const chunk = (type, data) => {
+    const h = Buffer.alloc(8);
+    h.writeUInt32LE(data.length, 0);
+    h.write(type, 4, 'latin1');
+    return Buffer.concat([h, data]);
+  };
+  const chunks = Buffer.concat([chunk('JSON', text), chunk('BIN\0', body)]);
+  const head = Buffer.alloc(12);
+  head.write('glTF', 0, 'latin1');
+  head.writeUInt32LE(2, 4);
+  head.writeUInt32LE(12 + chunks.length, 8);
+  return Buffer.concat([head, chunks]);
+}
+
+/** The parts of a one-primitive GLB: its JSON, BIN chunk, primitive, position accessor, the
+ * byte offset of the first position and the positions' stride. */
+function glbParts(glb) {
   const jsonLen = glb.readUInt32LE(12);
   const json = JSON.parse(glb.subarray(20, 20 + jsonLen).toString('utf8'));
   const bin = glb.subarray(20 + jsonLen + 8);
@@ -544,7 +559,14 @@ function quantizeGlb(glb) {
   const acc = json.accessors[prim.attributes.POSITION];
   const view = json.bufferViews[acc.bufferView];
   const at = (view.byteOffset || 0) + (acc.byteOffset || 0);
-  const stride = view.byteStride || 12;
+  return { json, bin, prim, acc, at, stride: view.byteStride || 12 };
+}
+
+/** A float-position GLB (one mesh, one primitive, as `shapeseek samples` writes it) rewritten as
+ * gltfpack writes it by default: positions as normalized u16 in an 8-byte stride, the node's
+ * scale and translation undoing the quantization, `KHR_mesh_quantization` required. */
+function quantizeGlb(glb) {
+  const { json, bin, prim, acc, at, stride } = glbParts(glb);
   const lo = acc.min;
   const span = Math.max(...acc.max.map((x, k) => x - lo[k]));
   const pos = Buffer.alloc(acc.count * 8);
@@ -579,18 +601,7 @@ function quantizeGlb(glb) {
   text = Buffer.concat([text, Buffer.alloc((4 - (text.length % 4)) % 4, 0x20)]);
   let body = Buffer.concat([pos, ibytes]);
   body = Buffer.concat([body, Buffer.alloc((4 - (body.length % 4)) % 4)]);
-  const chunk = (type, data) => {
-    const h = Buffer.alloc(8);
-    h.writeUInt32LE(data.length, 0);
-    h.write(type, 4, 'latin1');
-    return Buffer.concat([h, data]);
-  };
-  const chunks = Buffer.concat([chunk('JSON', text), chunk('BIN\0', body)]);
-  const head = Buffer.alloc(12);
-  head.write('glTF', 0, 'latin1');
-  head.writeUInt32LE(2, 4);
-  head.writeUInt32LE(12 + chunks.length, 8);
-  return Buffer.concat([head, chunks]);
+  return glbOf(text, body);
 }
 
 /** A float-position GLB (as `shapeseek samples` writes it) with its positions and indices
@@ -598,14 +609,7 @@ function quantizeGlb(glb) {
  * in the BIN chunk, the views in a fallback buffer without data). */
 async function meshoptGlb(glb) {
   await MeshoptEncoder.ready;
-  const jsonLen = glb.readUInt32LE(12);
-  const json = JSON.parse(glb.subarray(20, 20 + jsonLen).toString('utf8'));
-  const bin = glb.subarray(20 + jsonLen + 8);
-  const prim = json.meshes[0].primitives[0];
-  const acc = json.accessors[prim.attributes.POSITION];
-  const view = json.bufferViews[acc.bufferView];
-  const at = (view.byteOffset || 0) + (acc.byteOffset || 0);
-  const stride = view.byteStride || 12;
+  const { json, bin, prim, acc, at, stride } = glbParts(glb);
   const pos = new Uint8Array(acc.count * 12);
   for (let i = 0; i < acc.count; i++) {
     pos.set(bin.subarray(at + i * stride, at + i * stride + 12), 12 * i);
@@ -644,18 +648,7 @@ async function meshoptGlb(glb) {
   };
   const text = pad(Buffer.from(JSON.stringify(out)), 0x20);
   const body = pad(Buffer.concat([vPad, iEnc]));
-  const chunk = (type, data) => {
-    const h = Buffer.alloc(8);
-    h.writeUInt32LE(data.length, 0);
-    h.write(type, 4, 'latin1');
-    return Buffer.concat([h, data]);
-  };
-  const chunks = Buffer.concat([chunk('JSON', text), chunk('BIN\0', body)]);
-  const head = Buffer.alloc(12);
-  head.write('glTF', 0, 'latin1');
-  head.writeUInt32LE(2, 4);
-  head.writeUInt32LE(12 + chunks.length, 8);
-  return Buffer.concat([head, chunks]);
+  return glbOf(text, body);
 }
 
 test('a quantized glTF (KHR_mesh_quantization, as gltfpack writes it) and a meshopt-compressed one are drawn as their float original', async () => {

@@ -995,20 +995,26 @@ mod tests {
         ])
     }
 
+    /// An icosphere of `subdivisions`, its positions as f32 and its indices flat.
+    fn sphere_arrays(subdivisions: u32) -> (Mesh, Vec<[f32; 3]>, Vec<u32>) {
+        let sphere = crate::mesh::generate::icosphere(subdivisions);
+        let positions = sphere
+            .vertices
+            .iter()
+            .map(|p| p.map(|x| x as f32))
+            .collect();
+        let flat = sphere.faces.iter().flatten().copied().collect();
+        (sphere, positions, flat)
+    }
+
     /// A meshopt-compressed file (gltfpack's `-cc`, `gltf-transform meshopt`) reads as the same
     /// mesh uncompressed: float positions with u32 indices in `TRIANGLES` mode, and positions
     /// through the `EXPONENTIAL` filter with u16 indices in `INDICES` mode under the extension's
     /// ratified name. Before, both were refused ("requires the glTF extension …").
     #[test]
     fn a_meshopt_compressed_file_reads_as_the_uncompressed_mesh() {
-        let sphere = crate::mesh::generate::icosphere(2);
-        let positions: Vec<[f32; 3]> = sphere
-            .vertices
-            .iter()
-            .map(|p| p.map(|x| x as f32))
-            .collect();
+        let (sphere, positions, flat) = sphere_arrays(2);
         let n = positions.len();
-        let flat: Vec<u32> = sphere.faces.iter().flatten().copied().collect();
         // The index codec may rotate a triangle's corners (never its winding).
         let rotated = |t: &[u32; 3]| {
             let k = (0..3).min_by_key(|&k| t[k]).unwrap();
@@ -1076,14 +1082,8 @@ mod tests {
     /// data.
     #[test]
     fn a_bad_meshopt_view_is_refused_plainly() {
-        let sphere = crate::mesh::generate::icosphere(1);
-        let positions: Vec<[f32; 3]> = sphere
-            .vertices
-            .iter()
-            .map(|p| p.map(|x| x as f32))
-            .collect();
+        let (_, positions, flat) = sphere_arrays(1);
         let n = positions.len();
-        let flat: Vec<u32> = sphere.faces.iter().flatten().copied().collect();
         let v = meshopt::encode_vertex_buffer(&positions).unwrap();
         let i = meshopt::encode_index_buffer(&flat, n).unwrap();
         let ext = "EXT_meshopt_compression";
