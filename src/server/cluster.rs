@@ -195,6 +195,9 @@ impl App {
         if self.foreign_change(id).await? {
             return Ok(()); // another shard's (src/server/shard.rs)
         }
+        if self.is_left_out(id) {
+            return Ok(()); // could not be recomputed since this node started (logged then)
+        }
         if self
             .scan
             .read()
@@ -223,11 +226,13 @@ impl App {
                         current = %app.engine.spec_key(),
                         "signature of another spec; recomputing"
                     );
-                    // A shape that cannot be recomputed is left out of this scan (logged; the
-                    // next reconciliation tries again) without holding up the others.
+                    // A shape that cannot be recomputed is left out of this scan (logged, and
+                    // not tried again until the next start) without holding up the others; a
+                    // store that fails is logged here and tried again by the next
+                    // reconciliation.
                     match app.admission.on_heavy_pool(|| app.recompute(rec.clone())) {
                         Ok(Some(s)) => s,
-                        Ok(None) => return None, // no original (logged)
+                        Ok(None) => return None, // left out (logged by `recompute`)
                         Err(e) => {
                             tracing::error!(id = %id, error = %e, "could not recompute; skipped");
                             return None;

@@ -99,6 +99,7 @@ impl App {
             cluster: None,
             conversions,
             downloads,
+            left_out: Arc::default(),
         };
         app.record_specs()?;
         let loaded = app.load_signatures()?;
@@ -274,16 +275,24 @@ impl App {
     /// and stores them. `None` (logged as an error) when that shape cannot be recomputed: its
     /// original is missing or damaged on disk, or it no longer passes the analysis under this
     /// spec (a release whose preparation refuses what an earlier one accepted). The record and
-    /// its original stay stored, left out of the scan; the next start tries again. One such
-    /// shape never stops a node from serving the others. A store that fails otherwise is an
+    /// its original stay stored, left out of the scan, and the id is remembered so that nothing
+    /// tries it again (a cluster node's reconciliation, an upload of the same bytes) until the
+    /// next start. One such shape never stops a node from serving the others. A store that fails otherwise is an
     /// error. Blocking (store calls through [`App::block`]).
     pub(super) fn recompute(&self, mut rec: ShapeRecord) -> crate::Result<Option<Signature>> {
+        if self.is_left_out(&rec.id) {
+            return Ok(None);
+        }
         let skipped = |why: &str, e: &dyn std::fmt::Display| {
             tracing::error!(
                 id = %rec.id,
                 error = %e,
-                "{why}; the shape stays stored but is left out of the index"
+                "{why}; the shape stays stored but is left out of the index until the next start"
             );
+            self.left_out
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .insert(rec.id.clone());
             Ok(None)
         };
         let orig = match self.block(self.store.mesh(&rec.id)) {
@@ -311,6 +320,14 @@ impl App {
             Some(&payload),
         ))?;
         Ok(Some(sig))
+    }
+
+    /// True when `id` could not be recomputed since this node started ([`App::recompute`]).
+    pub(super) fn is_left_out(&self, id: &str) -> bool {
+        self.left_out
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .contains(id)
     }
 
     /// The scan over the loaded shapes with the stored calibration when it still fits (nothing
@@ -717,5 +734,55 @@ mod tests {
         for id in [&unreadable, &damaged] {
             assert!(rt.block_on(store.get(id)).unwrap().is_some(), "{id} kept");
         }
+    }
+
+    /// A shape left out at start is not analysed again by the same node (a cluster node's
+    /// reconciliation every few seconds, an upload of the same bytes): only the next start
+    /// tries again, and serves it once its original reads. Before, each reconciliation ran the
+    /// failing analysis again on the heavy lane.
+    #[test]
+    fn a_shape_left_out_is_tried_again_at_the_next_start_only() {
+        let (dir, ids) = stored(3);
+        let left = ids[1].clone();
+        {
+            // Its signature of another spec (as after an upgrade): to be recomputed.
+            let db = crate::index::store::open_db(&dir.path().join("db")).unwrap();
+            let shapes = db.open_tree("shapes").unwrap();
+            let mut rec: ShapeRecord =
+                serde_json::from_slice(&shapes.get(left.as_bytes()).unwrap().unwrap()).unwrap();
+            rec.spec_key = "an earlier spec".into();
+            shapes
+                .insert(left.as_bytes(), serde_json::to_vec(&rec).unwrap())
+                .unwrap();
+            db.flush().unwrap();
+        }
+        {
+            let rt = runtime();
+            let faulty = Arc::new(crate::storage::faulty::Faulty::new(sled_store(
+                dir.path(),
+                &rt,
+            )));
+            faulty
+                .corrupt_originals
+                .lock()
+                .unwrap()
+                .insert(left.clone());
+            let store: Arc<dyn ShapeStore> = faulty.clone();
+            let app = Arc::new(node(dir.path(), &store, &rt));
+            assert_eq!(served(&app).1.len(), 2);
+            assert!(app.is_left_out(&left));
+            // The original reads again; the node that left the shape out does not try it.
+            faulty.corrupt_originals.lock().unwrap().clear();
+            rt.block_on(app.apply_insert(&left)).unwrap();
+            let rows: Vec<String> = served(&app).1.into_iter().map(|(id, _)| id).collect();
+            assert_eq!(rows.len(), 2, "not analysed again before the next start");
+            assert!(!rows.contains(&left));
+        }
+        let rt = runtime();
+        let store = sled_store(dir.path(), &rt);
+        let app = node(dir.path(), &store, &rt);
+        let rows: Vec<String> = served(&app).1.into_iter().map(|(id, _)| id).collect();
+        assert_eq!(rows.len(), 3, "the next start recomputed it");
+        assert!(rows.contains(&left));
     }
 }

@@ -58,6 +58,10 @@ pub struct App {
     pub(super) conversions: Arc<tokio::sync::Semaphore>,
     /// Download bytes held at once (`max_inflight_response_bytes`).
     pub(super) downloads: super::limits::ResponseBudget,
+    /// Stored shapes whose signature could not be recomputed for this node's spec
+    /// ([`App::recompute`]): left out of the scan, and not tried again until the next start
+    /// (a cluster node's reconciliation would otherwise analyse each again every few seconds).
+    pub(super) left_out: Arc<std::sync::Mutex<std::collections::HashSet<String>>>,
 }
 
 /// Per-stage milliseconds of one ingest or query analysis.

@@ -36,6 +36,8 @@ pub(crate) struct Faulty {
     /// Pages of `scan_signatures` hold at most this many (0: no cap): short pages before the
     /// end, as a backend may return.
     pub page_cap: AtomicUsize,
+    /// The originals of these shapes read as damaged on disk ([`Error::Corrupt`]).
+    pub corrupt_originals: Mutex<std::collections::HashSet<String>>,
 }
 
 impl Faulty {
@@ -51,6 +53,7 @@ impl Faulty {
             fail_after_insert: AtomicBool::new(false),
             after_list: Mutex::new(None),
             page_cap: AtomicUsize::new(0),
+            corrupt_originals: Mutex::default(),
         }
     }
 
@@ -145,6 +148,9 @@ impl ShapeStore for Faulty {
         self.inner.signature(id).await
     }
     async fn mesh(&self, id: &str) -> Result<Option<Vec<u8>>> {
+        if self.corrupt_originals.lock().unwrap().contains(id) {
+            return Err(Error::corrupt("original", Some(id), "injected damage"));
+        }
         self.inner.mesh(id).await
     }
     async fn payload(&self, id: &str) -> Result<Option<Vec<u8>>> {

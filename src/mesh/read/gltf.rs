@@ -30,7 +30,7 @@
 //! position) count must be a multiple of 3 (lenient: the trailing indices are ignored).
 //! Positions are f32 (or dequantized to f32) in glTF: they are widened exactly to f64.
 
-use super::gltf_meshopt::Meshopt;
+use super::gltf_meshopt::{Decoded, Meshopt};
 use super::ReadLimits;
 use crate::error::{Error, Location, Result};
 use crate::mesh::Mesh;
@@ -169,8 +169,13 @@ struct Sources<'b> {
     bin: Option<&'b [u8]>,
     /// The meshopt-compressed views and fallback buffers.
     meshopt: Meshopt,
+    /// Each buffer's source (the BIN chunk or a URI), by buffer index.
+    sources: Vec<gltf::buffer::Source<'b>>,
     /// Compressed views decoded, by view index.
-    decoded: HashMap<usize, Vec<u8>>,
+    decoded: HashMap<usize, Decoded>,
+    /// Bytes the compressed views still to be decoded may take
+    /// ([`super::gltf_meshopt::decoded_budget`]).
+    budget_left: usize,
 }
 
 impl<'b> Sources<'b> {
@@ -188,39 +193,36 @@ impl<'b> Sources<'b> {
         }
     }
 
-    /// Decodes every compressed view that a position or index accessor of a triangle
-    /// primitive reads, once.
-    fn decode_views(&mut self, doc: &gltf::Document, limits: &ReadLimits) -> Result<()> {
-        let mut wanted: Vec<usize> = Vec::new();
-        for mesh in doc.meshes() {
-            for prim in mesh.primitives() {
-                if !matches!(
-                    prim.mode(),
-                    Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
-                ) {
-                    continue;
-                }
-                let accessors = prim.get(&gltf::Semantic::Positions).into_iter();
-                for acc in accessors.chain(prim.indices()) {
-                    if let Some(v) = acc.view() {
-                        if self.meshopt.is_compressed(v.index()) {
-                            wanted.push(v.index());
-                        }
-                    }
-                }
-            }
+    /// Decodes the compressed view `acc` reads, if it has one that is not decoded yet (a
+    /// primitive's position accessor, `index` false, or index accessor), charged against what
+    /// is left of the read's budget of decoded bytes.
+    fn decode_view_of(
+        &mut self,
+        acc: &gltf::Accessor,
+        index: bool,
+        limits: &ReadLimits,
+    ) -> Result<()> {
+        let Some(view) = acc.view() else {
+            return Ok(()); // refused by accessor_bytes
+        };
+        let i = view.index();
+        if !self.meshopt.is_compressed(i) {
+            return Ok(());
         }
-        wanted.sort_unstable();
-        wanted.dedup();
-        let kinds: Vec<gltf::buffer::Source> = doc.buffers().map(|b| b.source()).collect();
-        for i in wanted {
-            let data = self.meshopt.decode(
-                i,
-                |b| kinds.get(b).and_then(|k| self.buffer(b, k.clone()).ok()),
-                limits,
-            )?;
-            self.decoded.insert(i, data);
+        self.meshopt.check_accessor(i, index, acc.size())?;
+        if self.decoded.contains_key(&i) {
+            return Ok(());
         }
+        let size = self.meshopt.decoded_size(i, limits, self.budget_left)?;
+        let data = {
+            let this = &*self;
+            let sources = &this.sources;
+            this.meshopt.decode(i, |b| {
+                sources.get(b).and_then(|k| this.buffer(b, k.clone()).ok())
+            })?
+        };
+        self.budget_left -= size;
+        self.decoded.insert(i, data);
         Ok(())
     }
 }
@@ -243,7 +245,7 @@ fn accessor_bytes<'s>(
     let buffer = view.buffer();
     // A compressed view's bytes are its decoded data, from their start.
     let (data, view_offset): (&[u8], usize) = match src.decoded.get(&view.index()) {
-        Some(d) => (d, 0),
+        Some(d) => (d.bytes(), 0),
         None if src.meshopt.is_fallback(buffer.index()) => {
             return Err(perr(format!(
                 "{name}: bufferView {} reads buffer {}, a meshopt fallback buffer without data",
@@ -564,9 +566,10 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
         buffers,
         bin,
         meshopt,
+        sources: doc.buffers().map(|b| b.source()).collect(),
         decoded: HashMap::new(),
+        budget_left: super::gltf_meshopt::decoded_budget(limits),
     };
-    src.decode_views(&doc, limits)?;
 
     let roots: Vec<gltf::Node> = match doc.default_scene().or_else(|| doc.scenes().next()) {
         Some(scene) => scene.nodes().collect(),
@@ -654,6 +657,12 @@ pub(crate) fn read(bytes: &[u8], limits: &ReadLimits) -> Result<Mesh> {
                 _ => n_idx.saturating_sub(2),
             };
             limits.check_faces(faces.len().saturating_add(n_tri))?;
+            // Compressed views are decoded here, once the running counts are known to be
+            // within the limits, and only for primitives the scene draws.
+            src.decode_view_of(&pos_acc, false, limits)?;
+            if let Some(acc) = prim.indices() {
+                src.decode_view_of(&acc, true, limits)?;
+            }
             let positions = read_positions(&pos_acc, &src)?;
             let indices: Vec<u32> = match prim.indices() {
                 Some(acc) => {
@@ -1007,6 +1016,17 @@ mod tests {
         (sphere, positions, flat)
     }
 
+    /// `g` (a GLB) with its JSON changed by `f`.
+    fn edit_glb(g: &[u8], f: impl FnOnce(&mut serde_json::Value)) -> Vec<u8> {
+        let (json, bin) = split_glb(g).unwrap();
+        let mut doc: serde_json::Value = serde_json::from_slice(json).unwrap();
+        f(&mut doc);
+        glb(&[
+            chunk(b"JSON", &pad4(doc.to_string().into_bytes(), b' ')),
+            chunk(b"BIN\0", bin.unwrap()),
+        ])
+    }
+
     /// A meshopt-compressed file (gltfpack's `-cc`, `gltf-transform meshopt`) reads as the same
     /// mesh uncompressed: float positions with u32 indices in `TRIANGLES` mode, and positions
     /// through the `EXPONENTIAL` filter with u16 indices in `INDICES` mode under the extension's
@@ -1076,10 +1096,12 @@ mod tests {
         );
     }
 
-    /// What is wrong with a compressed view is said plainly, and never reaches a decoder's
-    /// assertion (which would abort the process): a damaged stream, a stride the codec cannot
-    /// have, a view over more vertices than the limit, a view of the fallback buffer read as
-    /// data.
+    /// What is wrong with a compressed view is said plainly, and never reaches a decoder with
+    /// parameters it does not take: a damaged stream, a stride the codec cannot have, a filter
+    /// on the wrong stride, a view over more vertices than the limit, views that together
+    /// decode past the read's budget (a small file asking for gigabytes), indices of another
+    /// size than the view's, a parent stride that is not the extension's, a view of the
+    /// fallback buffer read as data.
     #[test]
     fn a_bad_meshopt_view_is_refused_plainly() {
         let (_, positions, flat) = sphere_arrays(1);
@@ -1128,37 +1150,96 @@ mod tests {
         );
         assert!(e.contains("filter Quaternion does not apply"), "{e}");
 
-        let small = ReadLimits {
-            max_vertices: n - 1,
-            ..ReadLimits::default()
-        };
-        let e = err(
-            meshopt_glb(
-                ext,
-                (&v, n, 12, 5126, "NONE"),
-                (&i, flat.len(), 4, "TRIANGLES"),
-            ),
-            &small,
-        );
-        assert!(e.contains(&format!("{n}")), "{e}");
-
-        // The index view without its extension: it reads the fallback buffer itself.
-        let g = meshopt_glb(
+        let packed = meshopt_glb(
             ext,
             (&v, n, 12, 5126, "NONE"),
             (&i, flat.len(), 4, "TRIANGLES"),
         );
-        let (json, bin) = split_glb(&g).unwrap();
-        let mut doc: serde_json::Value = serde_json::from_slice(json).unwrap();
-        doc["bufferViews"][1]
-            .as_object_mut()
-            .unwrap()
-            .remove("extensions")
-            .unwrap();
-        let g = glb(&[
-            chunk(b"JSON", &pad4(doc.to_string().into_bytes(), b' ')),
-            chunk(b"BIN\0", bin.unwrap()),
-        ]);
+        // One triangle read from a view of more vertices than the limit: refused before the
+        // view is decoded (the running count, 3, is within it).
+        let one_triangle = edit_glb(&packed, |doc| {
+            doc["accessors"][0]["count"] = 3.into();
+            doc["meshes"][0]["primitives"][0]
+                .as_object_mut()
+                .unwrap()
+                .remove("indices");
+        });
+        let small = ReadLimits {
+            max_vertices: n - 1,
+            ..ReadLimits::default()
+        };
+        let e = err(one_triangle.clone(), &small);
+        assert!(
+            e.contains(&format!("too many vertices: {n} > limit {}", n - 1)),
+            "{e}"
+        );
+        assert!(read(&one_triangle, &ok).is_ok());
+
+        // Ten triangles, each read from its own copy of the view over the same encoded bytes:
+        // each view is within the limits, together they decode to 120 n bytes, past the
+        // budget of 64 n + 12 × 10 (before: all ten decoded).
+        let ten = edit_glb(&packed, |doc| {
+            let view = doc["bufferViews"][0].clone();
+            let mut prims = Vec::new();
+            for k in 0..10 {
+                let at = doc["bufferViews"].as_array().unwrap().len();
+                doc["bufferViews"]
+                    .as_array_mut()
+                    .unwrap()
+                    .push(view.clone());
+                let acc = doc["accessors"].as_array().unwrap().len();
+                doc["accessors"]
+                    .as_array_mut()
+                    .unwrap()
+                    .push(serde_json::json!({
+                        "bufferView": at, "componentType": 5126, "count": 3, "type": "VEC3",
+                        "min": [-1, -1, -1], "max": [1, 1, 1], "byteOffset": 12 * k
+                    }));
+                prims.push(serde_json::json!({"attributes": {"POSITION": acc}}));
+            }
+            doc["meshes"][0]["primitives"] = prims.into();
+        });
+        let tight = ReadLimits {
+            max_vertices: n,
+            max_faces: 10,
+            ..ReadLimits::default()
+        };
+        let e = err(ten.clone(), &tight);
+        assert!(e.contains("past what is left of the"), "{e}");
+        assert_eq!(read(&ten, &ok).unwrap().faces.len(), 10);
+
+        // Indices read with another size than the view's.
+        let e = err(
+            edit_glb(&packed, |doc| {
+                doc["accessors"][1]["componentType"] = 5123.into()
+            }),
+            &ok,
+        );
+        assert!(
+            e.contains("indices of 2 bytes over a view of 4-byte indices"),
+            "{e}"
+        );
+
+        // A parent stride that is not the extension's.
+        let e = err(
+            edit_glb(&packed, |doc| {
+                doc["bufferViews"][0]["byteStride"] = 16.into()
+            }),
+            &ok,
+        );
+        assert!(
+            e.contains("the view's byteStride 16 is not the extension's 12"),
+            "{e}"
+        );
+
+        // The index view without its extension: it reads the fallback buffer itself.
+        let g = edit_glb(&packed, |doc| {
+            doc["bufferViews"][1]
+                .as_object_mut()
+                .unwrap()
+                .remove("extensions")
+                .unwrap();
+        });
         let e = err(g, &ok);
         assert!(e.contains("a meshopt fallback buffer without data"), "{e}");
     }
