@@ -1129,6 +1129,7 @@ fn calibration_above_the_sample_size_uses_the_smallest_content_hashes() {
     let info = get(s.addr, "/v1/index").json();
     assert_eq!(info["calibrated_on"], 9, "{info}");
     assert_eq!(info["calibration_shapes"], 4, "{info}");
+    assert_eq!(info["left_out"], 0, "{info}");
     // The sample: the 4 smallest SHA-256s, in upload order (= id order).
     let mut by_hash: Vec<(String, usize)> = shapes
         .iter()

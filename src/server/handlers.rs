@@ -561,6 +561,8 @@ pub async fn index_info(State(app): AppState) -> Result<Response, ApiError> {
         "calibration_epoch": epoch,
         "calibrated_on": on,
         "calibration_shapes": sampled,
+        // Stored shapes this node could not recompute for its spec (`src/server/load.rs`).
+        "left_out": app.left_out.lock().unwrap_or_else(|p| p.into_inner()).len(),
         "schema_version": app.store.schema_version().await.map_err(ApiError::from)?,
         "engine": app.engine.name(),
         "spec_key": app.engine.spec_key(),

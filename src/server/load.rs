@@ -277,8 +277,8 @@ impl App {
     /// spec (a release whose preparation refuses what an earlier one accepted). The record and
     /// its original stay stored, left out of the scan, and the id is remembered so that nothing
     /// tries it again (a cluster node's reconciliation, an upload of the same bytes) until the
-    /// next start. One such shape never stops a node from serving the others. A store that fails otherwise is an
-    /// error. Blocking (store calls through [`App::block`]).
+    /// next start. One such shape never stops a node from serving the others. A store that
+    /// fails otherwise is an error. Blocking (store calls through [`App::block`]).
     pub(super) fn recompute(&self, mut rec: ShapeRecord) -> crate::Result<Option<Signature>> {
         if self.is_left_out(&rec.id) {
             return Ok(None);
@@ -730,6 +730,11 @@ mod tests {
         let mut others = vec![ids[0].clone(), ids[3].clone()];
         others.sort();
         assert_eq!(rows, others, "the two others served");
+        assert_eq!(
+            app.left_out.lock().unwrap().len(),
+            2,
+            "counted in GET /v1/index"
+        );
         // Still stored, so a later start (or a mended original) can bring them back.
         for id in [&unreadable, &damaged] {
             assert!(rt.block_on(store.get(id)).unwrap().is_some(), "{id} kept");

@@ -331,7 +331,7 @@ fn read_positions(acc: &gltf::Accessor, src: &Sources) -> Result<Vec<[f32; 3]>> 
 /// prefix its name says it changes only how the surface looks (`materials_`, `texture_`,
 /// `lights_`), or it is `KHR_animation_pointer` or `KHR_xmp_json_ld` (animation, XMP
 /// metadata), none of which is read; or it is `KHR_mesh_quantization`, whose integer positions
-/// [`read_positions`] reads, or meshopt compression, whose views [`Sources::decode_views`]
+/// [`read_positions`] reads, or meshopt compression, whose views [`Sources::decode_view_of`]
 /// decodes. Anything else (Draco compression, GPU instancing, levels of detail, structural
 /// metadata) may change what the bytes of the geometry mean.
 fn leaves_geometry_readable(ext: &str) -> bool {
@@ -962,7 +962,6 @@ mod tests {
     /// named) and indices (`index_size` bytes each, `indices` encoded, `mode` named) are
     /// meshopt-compressed in the BIN chunk, under extension `ext`, their views in a fallback
     /// buffer; `component` is the positions' component type.
-    #[allow(clippy::too_many_arguments)]
     fn meshopt_glb(
         ext: &str,
         (vertices, count, stride, component, filter): (&[u8], usize, usize, u32, &str),
