@@ -413,9 +413,9 @@ pub const DEFAULT_HISTOGRAM_BINS: usize = 128;
 
 /// Vertices a shape is analysed at, at most ([`crate::mesh::prepare::PrepareOptions::max_vertices`],
 /// [`crate::mesh::decimate`]): a larger mesh is simplified to this many before its spectrum
-/// (capping may add its caps' vertices after). The benchmarks' shapes have 1 000–6 669 vertices
-/// and are never simplified; a 180 000-vertex upload otherwise took 28 s and 1 GiB of memory
-/// (`docs/reliability.md`, "Large meshes").
+/// (capping may add its caps' vertices after). The benchmarks' shapes have 2 001–6 669 vertices
+/// (`dev`) and 1 429–2 230 (`mini`) and are never simplified; a 180 000-vertex upload otherwise
+/// took 28 s and 1 GiB of memory (`docs/reliability.md`, "Large meshes").
 pub const ANALYSIS_VERTEX_BUDGET: usize = 20_000;
 
 /// Eigenvalues in the default's ShapeDNA channel (`docs/quality.md` §24): an index needs at

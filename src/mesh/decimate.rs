@@ -3,10 +3,10 @@
 //! The paper's operators are discretisations of a continuous one: the Laplace–Beltrami
 //! eigenpairs of the low frequencies the signatures read (eq. 2; the first 100–150 of them)
 //! converge as the mesh is refined, and a few thousand vertices resolve them (the benchmark's
-//! shapes have about 4 000). A 3D scan of 180 000 vertices costs the eigensolve 50 times more
-//! work and its Krylov basis 45 times more memory (an upload of that size took 28 s and 1 GiB,
-//! `docs/reliability.md`), for eigenpairs that a mesh of 20 000 vertices already gives to well
-//! under the differences between shapes. So a mesh with more vertices than the budget is
+//! shapes have 2 001–6 669 vertices). An upload of a 3D scan of 180 000 vertices took 28 s
+//! (10.3 s of it the eigensolve) and 1 GiB, against 2.8 s (0.75 s) and 204 MB simplified to
+//! 20 000 vertices (`docs/reliability.md`, "Large meshes"), which already give those
+//! eigenpairs to well under the differences between shapes. So a mesh with more vertices than the budget is
 //! simplified to it first: quadric-error edge collapses (Garland & Heckbert 1997), which keep
 //! the surface's shape and its topology (genus, boundary loops), by meshoptimizer's simplifier
 //! (the `meshopt` crate, Arseny Kapoulkine's C++ library built by `cc`). Collapses move a vertex
