@@ -18,6 +18,7 @@
 //! hundred lines of subtle code (link conditions, flip checks, border classification), and
 //! meshoptimizer's is maintained, fast (≈ 0.15 s for 180 000 vertices here) and widely used.
 
+use super::buckets::Buckets;
 use super::topology::{surface_stats, SurfaceStats};
 use super::Mesh;
 
@@ -88,7 +89,7 @@ pub fn decimate(
     let mut used = vec![false; n];
     let mut lock = vec![false; n];
     let mut vertices_locked = 0;
-    let mut neighbours: Option<Vec<Vec<u32>>> = None;
+    let mut neighbours: Option<Buckets<u32>> = None;
     let before = surface_stats(mesh).ok();
     let mut border_locked = false;
     let mut attempt = 0;
@@ -293,26 +294,22 @@ fn border_vertices(faces: &[[u32; 3]]) -> Vec<u32> {
     out
 }
 
-/// Each vertex's neighbours along the faces' edges.
-fn vertex_neighbours(n: usize, faces: &[[u32; 3]]) -> Vec<Vec<u32>> {
-    let mut nb: Vec<Vec<u32>> = vec![Vec::new(); n];
-    for f in faces {
-        for k in 0..3 {
-            let (a, b) = (f[k], f[(k + 1) % 3]);
-            nb[a as usize].push(b);
-            nb[b as usize].push(a);
-        }
-    }
-    for l in &mut nb {
-        l.sort_unstable();
-        l.dedup();
-    }
-    nb
+/// Each vertex's neighbours along the faces' edges (a neighbour may be listed more than once).
+fn vertex_neighbours(n: usize, faces: &[[u32; 3]]) -> Buckets<u32> {
+    Buckets::new(
+        n,
+        faces.iter().flat_map(|f| {
+            (0..3).flat_map(move |k| {
+                let (a, b) = (f[k], f[(k + 1) % 3]);
+                [(a, b), (b, a)]
+            })
+        }),
+    )
 }
 
 /// Locks every vertex within `rings` edges of `seeds`; returns how many were not locked yet.
-fn lock_rings(nb: &[Vec<u32>], seeds: &[u32], rings: usize, lock: &mut [bool]) -> usize {
-    let mut depth: Vec<u32> = vec![u32::MAX; nb.len()];
+fn lock_rings(nb: &Buckets<u32>, seeds: &[u32], rings: usize, lock: &mut [bool]) -> usize {
+    let mut depth: Vec<u32> = vec![u32::MAX; lock.len()];
     let mut frontier: Vec<u32> = seeds.to_vec();
     for &s in seeds {
         depth[s as usize] = 0;
@@ -332,7 +329,7 @@ fn lock_rings(nb: &[Vec<u32>], seeds: &[u32], rings: usize, lock: &mut [bool]) -
         d += 1;
         let mut next = Vec::new();
         for &v in &frontier {
-            for &w in &nb[v as usize] {
+            for &w in nb.get(v as usize) {
                 if depth[w as usize] == u32::MAX {
                     depth[w as usize] = d as u32;
                     next.push(w);
@@ -359,17 +356,10 @@ const FLAT: f64 = 1e-9;
 /// `(x, v, w)`: the triangle across split at `w`, same orientation, no area lost. A flat
 /// triangle whose longest edge is on the border, or whose flip would duplicate an edge, is left.
 fn flip_flat_triangles(vertices: &[[f64; 3]], faces: &mut [[u32; 3]]) {
+    use super::{cross, dot, sub};
     use std::collections::HashMap;
     let p = |i: u32| vertices[i as usize];
-    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    let norm2 = |a: [f64; 3]| a[0] * a[0] + a[1] * a[1] + a[2] * a[2];
-    let cross = |a: [f64; 3], b: [f64; 3]| {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
+    let norm2 = |a: [f64; 3]| dot(a, a);
     // Twice the area squared against the longest edge squared, and the longest edge's corner.
     let flat = |f: [u32; 3]| -> Option<usize> {
         let [a, b, c] = f.map(p);
