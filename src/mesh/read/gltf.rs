@@ -180,16 +180,17 @@ struct Sources<'b> {
 
 impl<'b> Sources<'b> {
     /// The bytes of buffer `i`: its decoded data URI, or the BIN chunk.
-    fn buffer(&self, i: usize, source: gltf::buffer::Source) -> Result<&[u8]> {
-        match source {
-            gltf::buffer::Source::Bin => self
+    fn buffer(&self, i: usize) -> Result<&[u8]> {
+        match self.sources.get(i) {
+            Some(gltf::buffer::Source::Bin) => self
                 .bin
                 .ok_or_else(|| perr(format!("buffer {i}: no GLB BIN chunk"))),
-            gltf::buffer::Source::Uri(_) => self
+            Some(gltf::buffer::Source::Uri(_)) => self
                 .buffers
                 .get(i)
                 .map(Vec::as_slice)
                 .ok_or_else(|| perr(format!("buffer {i} missing"))),
+            None => Err(perr(format!("buffer {i} missing"))),
         }
     }
 
@@ -214,13 +215,7 @@ impl<'b> Sources<'b> {
             return Ok(());
         }
         let size = self.meshopt.decoded_size(i, limits, self.budget_left)?;
-        let data = {
-            let this = &*self;
-            let sources = &this.sources;
-            this.meshopt.decode(i, |b| {
-                sources.get(b).and_then(|k| this.buffer(b, k.clone()).ok())
-            })?
-        };
+        let data = self.meshopt.decode(i, |b| self.buffer(b).ok())?;
         self.budget_left -= size;
         self.decoded.insert(i, data);
         Ok(())
@@ -253,7 +248,7 @@ fn accessor_bytes<'s>(
                 buffer.index()
             )))
         }
-        None => (src.buffer(buffer.index(), buffer.source())?, view.offset()),
+        None => (src.buffer(buffer.index())?, view.offset()),
     };
     let elem = acc.size();
     let stride = view.stride().unwrap_or(elem);
